@@ -1,0 +1,210 @@
+"""Input checks that turn bad arguments into clear errors before any work starts."""
+
+from __future__ import annotations
+
+import numbers
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+__all__ = [
+    "is_sequence_list",
+    "as_sequence_list",
+    "check_covariance",
+    "check_vector",
+    "check_positive",
+    "check_choice",
+    "check_device",
+    "check_module_shapes",
+]
+
+
+def _to_tensor(value, name: str, dtype: torch.dtype, device: torch.device) -> Tensor:
+    if isinstance(value, Tensor):
+        t = value.detach()
+    else:
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise TypeError(f"{name} must be array-like of numbers, got {type(value).__name__}") from exc
+        t = torch.from_numpy(arr)
+    if not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64, torch.bool)):
+        raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
+    return t.to(device=device, dtype=dtype)
+
+
+def _as_2d(t: Tensor, name: str) -> Tensor:
+    if t.dim() == 1:
+        return t.unsqueeze(-1)
+    if t.dim() == 2:
+        return t
+    raise ValueError(f"{name} must be 1-D (n_samples,) or 2-D (n_samples, n_features), got shape {tuple(t.shape)}")
+
+
+def is_sequence_list(value) -> bool:
+    return isinstance(value, (list, tuple)) and len(value) > 0 and all(
+        isinstance(v, (np.ndarray, Tensor)) or (isinstance(v, Sequence) and not isinstance(v, str))
+        for v in value
+    ) and not all(isinstance(v, numbers.Number) for v in value)
+
+
+def as_sequence_list(
+    u,
+    y,
+    *,
+    dtype: torch.dtype,
+    device: torch.device,
+    n_inputs: int | None = None,
+    n_outputs: int | None = None,
+    require_y: bool = True,
+) -> tuple[list[Tensor], list[Tensor] | None]:
+    """Validate ``u`` and ``y`` (one record, or lists of records) and convert them to 2-D tensors.
+
+    ``u=None`` means a system without input (``nu = 0``).  NaN in ``y`` marks a missing output;
+    NaN or infinity in ``u`` is an error.
+
+    Returns
+    -------
+    (list of Tensor, list of Tensor or None)
+        Inputs ``(T_b, nu)`` and outputs ``(T_b, p)`` of each record.
+    """
+    multi = is_sequence_list(y) if y is not None else is_sequence_list(u)
+    if y is None and require_y:
+        raise ValueError("y is required")
+    if multi:
+        ys = list(y) if y is not None else None
+        n_seq = len(ys) if ys is not None else len(u)
+        if u is None:
+            us = [None] * n_seq
+        elif is_sequence_list(u):
+            us = list(u)
+            if len(us) != n_seq:
+                raise ValueError(f"u and y must hold the same number of sequences, got {len(us)} and {n_seq}")
+        else:
+            raise ValueError("y is a list of sequences, so u must be a list of the same length (or None)")
+    else:
+        us, ys = [u], ([y] if y is not None else None)
+    out_u, out_y = [], ([] if ys is not None else None)
+    for b in range(len(us)):
+        tag = f"[{b}]" if multi else ""
+        yb = None
+        if ys is not None:
+            yb = _as_2d(_to_tensor(ys[b], f"y{tag}", dtype, device), f"y{tag}")
+            if yb.shape[0] < 2:
+                raise ValueError(f"y{tag} must have at least 2 samples, got {yb.shape[0]}")
+            if torch.isinf(yb).any():
+                raise ValueError(f"y{tag} contains infinite values (use NaN for missing outputs)")
+            if torch.isnan(yb).all():
+                raise ValueError(f"y{tag} is all missing (NaN): nothing to fit")
+            if n_outputs is not None and yb.shape[1] != n_outputs:
+                raise ValueError(f"y{tag} has {yb.shape[1]} output columns, expected {n_outputs}")
+        if us[b] is None:
+            if n_inputs not in (None, 0):
+                raise ValueError(f"u is required: the model was fitted with {n_inputs} input columns")
+            if yb is None:
+                raise ValueError("u is required when y is not given")
+            ub = torch.zeros(yb.shape[0], 0, dtype=dtype, device=device)
+        else:
+            ub = _as_2d(_to_tensor(us[b], f"u{tag}", dtype, device), f"u{tag}")
+            if not torch.isfinite(ub).all():
+                bad = int(torch.nonzero(~torch.isfinite(ub).all(-1))[0])
+                raise ValueError(f"u{tag} contains NaN or infinite values (first at sample {bad})")
+            if n_inputs is not None and ub.shape[1] != n_inputs:
+                raise ValueError(f"u{tag} has {ub.shape[1]} input columns, expected {n_inputs}")
+        if yb is not None and ub.shape[0] != yb.shape[0]:
+            raise ValueError(f"u{tag} and y{tag} must have the same length, got {ub.shape[0]} and {yb.shape[0]}")
+        out_u.append(ub)
+        if out_y is not None:
+            out_y.append(yb)
+    return out_u, out_y
+
+
+def check_vector(value, name: str, dim: int | None, *, dtype, device) -> Tensor:
+    """A finite 1-D vector (a scalar is a vector of length 1)."""
+    t = _to_tensor(value, name, dtype, device).reshape(-1)
+    if dim is not None and t.numel() != dim:
+        raise ValueError(f"{name} must have {dim} entries, got {t.numel()}")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite, got {t.tolist()}")
+    return t
+
+
+def check_covariance(value, name: str, dim: int, *, dtype, device) -> Tensor:
+    """A symmetric positive-definite ``(dim, dim)`` matrix; a scalar or vector means a diagonal."""
+    t = _to_tensor(value, name, dtype, device)
+    if t.dim() == 0 or (t.dim() == 1 and t.numel() == 1):
+        t = t.reshape(()) * torch.eye(dim, dtype=dtype, device=device)
+    elif t.dim() == 1:
+        if t.numel() != dim:
+            raise ValueError(f"{name} as a vector is a diagonal and must have {dim} entries, got {t.numel()}")
+        t = torch.diag(t)
+    if t.shape != (dim, dim):
+        raise ValueError(f"{name} must be a ({dim}, {dim}) matrix, got shape {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite")
+    if not torch.allclose(t, t.T, rtol=1e-8, atol=1e-12):
+        raise ValueError(f"{name} must be symmetric")
+    if torch.linalg.eigvalsh(t).min() <= 0:
+        raise ValueError(f"{name} must be positive definite, its eigenvalues are {torch.linalg.eigvalsh(t).tolist()}")
+    return t
+
+
+def check_positive(value, name: str, *, integer: bool = False, minimum: float = 0.0, inclusive=False):
+    """A real (or integer) number ``> minimum`` (``>=`` when ``inclusive``)."""
+    kind = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind):
+        raise TypeError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
+    ok = value >= minimum if inclusive else value > minimum
+    if not ok or (not integer and not np.isfinite(value) and not np.isinf(value)):
+        op = ">=" if inclusive else ">"
+        raise ValueError(f"{name} must be {op} {minimum}, got {value!r}")
+    return value
+
+
+def check_choice(value, name: str, choices) -> str:
+    """One of a fixed set of strings."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+    return value
+
+
+def check_device(device) -> torch.device:
+    """A torch device that exists on this machine."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ValueError(f"device {device!r} is not a valid torch device") from exc
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} is not available: torch.cuda.is_available() is False")
+    if dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device {device!r} is not available on this machine")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ValueError(f"device {device!r} is not available: {torch.cuda.device_count()} CUDA device(s)")
+    return dev
+
+
+def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *, dtype, device) -> None:
+    """Call ``f`` and ``g`` once on a small batch and check their output shapes."""
+    for name, module in (("f", f), ("g", g)):
+        if not isinstance(module, nn.Module):
+            raise TypeError(f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(module).__name__}")
+    x = torch.zeros(3, nx, dtype=dtype, device=device)
+    u = torch.zeros(3, nu, dtype=dtype, device=device)
+    for name, module, want, what in (("f", f, nx, "the state dimension len(x0_mean)"), ("g", g, p, "the number of outputs (columns of y)")):
+        try:
+            with torch.no_grad():
+                out = module(x, u)
+        except Exception as exc:  # a user module can fail in any way: say where
+            raise ValueError(
+                f"{name}(x, u) failed on x of shape {tuple(x.shape)} and u of shape {tuple(u.shape)} "
+                f"({type(exc).__name__}: {exc}); check that nx = len(x0_mean) = {nx} and nu = {nu} "
+                "match the module"
+            ) from exc
+        if not isinstance(out, Tensor) or tuple(out.shape) != (3, want):
+            shape = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
+            raise ValueError(
+                f"{name}(x, u) must return shape (..., {want}) ({what}) for x of shape (..., {nx}); "
+                f"got {shape} for x of shape (3, {nx})"
+            )

@@ -1,0 +1,173 @@
+"""One iteration of the robust EM algorithm (paper Algorithm 1): E-step and M-step.
+
+The E-step runs the particle filter, a particle smoother and the Student-t latent-scale
+expectations; the M-step updates ``theta_f, Rw, theta_g, Rv, dof`` and the initial-state prior from
+them (see :mod:`torch_nssm.mstep` for the formulas).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from .filtering import FilterOutput, NumericalError, particle_filter
+from .model import SequenceBatch, StateSpaceModel
+from .mstep import (
+    fit_weighted_regression,
+    initial_state_update,
+    measurement_noise_update,
+    observation_rows,
+    process_noise_update,
+    transition_rows,
+    dof_update,
+)
+from .noise import latent_scale_expectations
+from .smoothing import SmootherOutput, ffbsm
+
+__all__ = ["EStepOutput", "MStepOptions", "e_step", "m_step", "SMOOTHERS"]
+
+SMOOTHERS = ("ffbsm",)
+
+
+@dataclass
+class EStepOutput:
+    """Filter, smoother and latent-scale expectations at the current parameters.
+
+    Attributes
+    ----------
+    filter : FilterOutput
+    smoother : SmootherOutput
+    e_lam, e_log_lam : Tensor, shape (T, B, L)
+        ``<lam>`` and ``<log lam>`` for each particle (1 and 0 where ``y_k`` is missing).
+    """
+
+    filter: FilterOutput
+    smoother: SmootherOutput
+    e_lam: Tensor
+    e_log_lam: Tensor
+
+    @property
+    def smoothing_weights(self) -> Tensor:
+        """``W_{k|N}``, shape (T, B, L)."""
+        return torch.exp(self.smoother.log_weights)
+
+    @property
+    def outlier_weights(self) -> Tensor:
+        """``E[lam_k | y]`` per sample, shape (T, B): near 0 marks an outlier."""
+        return (self.smoothing_weights * self.e_lam).sum(-1)
+
+    @property
+    def log_likelihood(self) -> Tensor:
+        """Particle estimate of the log-likelihood of each sequence, shape (B,)."""
+        return self.filter.log_likelihood
+
+
+def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutput) -> tuple[Tensor, Tensor]:
+    """``<lam>`` and ``<log lam>`` of every particle at every step (NOTES §1)."""
+    T, B, L, _ = filt.particles.shape
+    scale = filt.scale
+    with torch.no_grad():
+        u = data.u.unsqueeze(2).expand(T, B, L, data.u.shape[-1])
+        resid = data.y.unsqueeze(2) - model.g(filt.particles, u)
+        resid = torch.where(scale.mask.unsqueeze(2), resid, torch.zeros_like(resid))
+        z = torch.einsum("tbij,tblj->tbli", scale.chol_inv, resid)
+        delta2 = (z * z).sum(-1)
+        dof = model.per_sequence("dof", B).view(1, B, 1)
+        return latent_scale_expectations(delta2, scale.n_obs.unsqueeze(-1), dof)
+
+
+def e_step(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    n_particles: int,
+    *,
+    smoother: str = "ffbsm",
+    resampling: str = "systematic",
+    ess_threshold: float = 1.0,
+    chunk_size: int | None = None,
+    generator: torch.Generator | None = None,
+) -> EStepOutput:
+    """Filter, smooth and compute the latent-scale expectations at the model's parameters."""
+    filt = particle_filter(
+        model, data, n_particles, resampling=resampling, ess_threshold=ess_threshold, generator=generator
+    )
+    if smoother == "ffbsm":
+        smooth = ffbsm(model, data, filt, chunk_size=chunk_size)
+    else:
+        raise ValueError(f"smoother must be one of {SMOOTHERS}, got {smoother!r}")
+    e_lam, e_log = latent_scales(model, data, filt)
+    return EStepOutput(filt, smooth, e_lam, e_log)
+
+
+@dataclass
+class MStepOptions:
+    """Settings of the M-step.
+
+    Attributes
+    ----------
+    optimizer : {"lbfgs", "adam"}
+        Gradient optimiser for modules without a closed-form solve.
+    max_iter : int
+        LBFGS iterations (or Adam steps) per M-step and module.
+    learning_rate : float
+        Adam's step size.
+    fit_dof : bool
+        Update the DOF (ignored for Gaussian noise).
+    dof_bounds : (float, float)
+        Bracket of the DOF root-solve.
+    fit_x0 : bool
+        Update the initial-state prior from the smoothed first state.
+    """
+
+    optimizer: str = "lbfgs"
+    max_iter: int = 20
+    learning_rate: float = 1e-2
+    fit_dof: bool = True
+    dof_bounds: tuple[float, float] = (0.1, 1000.0)
+    fit_x0: bool = True
+
+
+def m_step(
+    model: StateSpaceModel, data: SequenceBatch, est: EStepOutput, options: MStepOptions
+) -> StateSpaceModel:
+    """Update all parameters from the E-step statistics (ECM order: f, Rw, g, Rv, dof, x0).
+
+    The modules ``model.f`` and ``model.g`` are updated in place; the noise parameters are
+    returned in a new :class:`StateSpaceModel`.
+
+    Raises
+    ------
+    NumericalError
+        If an update is not finite (the caller keeps the previous parameters).
+    """
+    fit = dict(optimizer=options.optimizer, max_iter=options.max_iter, learning_rate=options.learning_rate)
+    rows_f = transition_rows(model, data, est.filter, est.smoother)
+    fit_weighted_regression(model.f, rows_f, **fit)
+    Rw = process_noise_update(model.f, rows_f, est.smoother, data)
+
+    rows_g, sw, e_lam, e_log = observation_rows(
+        model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam
+    )
+    fit_weighted_regression(model.g, rows_g, **fit)
+    Rv = measurement_noise_update(model.g, rows_g, data)
+
+    dof = model.dof
+    if options.fit_dof and not model.gaussian:
+        n_samples = data.obs_mask.any(-1).sum().to(sw.dtype)
+        dof = dof_update(sw, e_lam, e_log, n_samples, options.dof_bounds).reshape(model.dof.shape)
+
+    x0_mean, x0_cov = model.x0_mean, model.x0_cov
+    if options.fit_x0:
+        x0_mean, x0_cov = initial_state_update(est.filter, est.smoother, Rw)
+
+    new = replace(model, Rw=Rw, Rv=Rv, dof=dof, x0_mean=x0_mean, x0_cov=x0_cov)
+    for name in ("Rw", "Rv", "x0_mean", "x0_cov"):
+        if not bool(torch.isfinite(getattr(new, name)).all()):
+            raise NumericalError(f"the M-step produced a non-finite {name}")
+    for module, label in ((model.f, "f"), (model.g, "g")):
+        for pname, p in module.named_parameters():
+            if not bool(torch.isfinite(p).all()):
+                raise NumericalError(f"the M-step produced a non-finite parameter {label}.{pname}")
+    return new

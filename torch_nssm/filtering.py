@@ -1,0 +1,153 @@
+"""Bootstrap particle filter with Student-t (or Gaussian) measurement noise, batched over sequences.
+
+All weights stay in the log domain.  The filter keeps every time step's particles and normalised
+weights (before resampling), which is what the smoothers need (NOTES §2-3).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .model import SequenceBatch, StateSpaceModel
+from .noise import MaskedScale, masked_scale, student_t_log_prob
+from .resampling import effective_sample_size, get_resampler
+
+__all__ = ["FilterOutput", "particle_filter", "observation_log_density", "NumericalError"]
+
+
+class NumericalError(FloatingPointError):
+    """Raised when the particle weights or the model produce non-finite values."""
+
+
+@dataclass
+class FilterOutput:
+    """Everything the smoothers and the user need from one pass of the particle filter.
+
+    Attributes
+    ----------
+    particles : Tensor, shape (T, B, L, nx)
+        Particles at each time step (after propagation, before resampling).
+    log_weights : Tensor, shape (T, B, L)
+        Normalised log filter weights ``log W_k``.
+    log_likelihood : Tensor, shape (B,)
+        Particle estimate of ``log p(y_{0:T_b-1})`` of each sequence.
+    ess : Tensor, shape (T, B)
+        Effective sample size of the filter weights at each step.
+    scale : MaskedScale
+        The measurement-noise scale restricted to the observed components, per ``(T, B)``.
+    """
+
+    particles: Tensor
+    log_weights: Tensor
+    log_likelihood: Tensor
+    ess: Tensor
+    scale: MaskedScale
+
+
+def observation_log_density(
+    model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Log-density of ``y_k`` for each particle, and the squared Mahalanobis residual norm.
+
+    Parameters
+    ----------
+    x : Tensor, shape (B, L, nx)
+
+    Returns
+    -------
+    (Tensor, Tensor)
+        ``log p(y_k | x)`` and ``delta2``, both ``(B, L)``; zero where ``y_k`` is missing.
+    """
+    B = data.n_sequences
+    resid = data.y[k].unsqueeze(-2) - model.observation(x, data.u[k])
+    z = torch.einsum("bij,blj->bli", scale.chol_inv[k], torch.where(scale.mask[k].unsqueeze(-2), resid, 0.0))
+    delta2 = (z * z).sum(-1)
+    dof = model.per_sequence("dof", B).unsqueeze(-1)
+    logp = student_t_log_prob(delta2, scale.logdet[k].unsqueeze(-1), scale.n_obs[k].unsqueeze(-1), dof)
+    return logp, delta2
+
+
+def _sample_initial(model: StateSpaceModel, B: int, L: int, generator) -> Tensor:
+    m0 = model.per_sequence("x0_mean", B)
+    C0 = torch.linalg.cholesky(model.per_sequence("x0_cov", B))
+    eps = torch.randn(B, L, m0.shape[-1], dtype=m0.dtype, device=m0.device, generator=generator)
+    return m0.unsqueeze(1) + eps @ C0.transpose(-1, -2)
+
+
+@torch.no_grad()
+def particle_filter(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    n_particles: int,
+    *,
+    resampling: str = "systematic",
+    ess_threshold: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> FilterOutput:
+    """Run the bootstrap particle filter over a batch of sequences.
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+    data : SequenceBatch
+    n_particles : int
+        Number of particles ``L``.
+    resampling : str
+        ``"systematic"`` (default), ``"stratified"``, ``"residual"`` or ``"multinomial"``.
+    ess_threshold : float
+        Resample a sequence when its ESS falls below ``ess_threshold * L``; ``1.0`` resamples at
+        every step, ``0.0`` never.
+    generator : torch.Generator, optional
+        Source of randomness (for reproducible runs).
+
+    Returns
+    -------
+    FilterOutput
+
+    Raises
+    ------
+    NumericalError
+        If the model or the weights produce non-finite values (e.g. ``f`` or ``g`` return NaN).
+    """
+    resample = get_resampler(resampling)
+    T, B = data.n_steps, data.n_sequences
+    L = n_particles
+    scale = masked_scale(model.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
+    Cw = torch.linalg.cholesky(model.per_sequence("Rw", B))
+    x = _sample_initial(model, B, L, generator)
+    nx = x.shape[-1]
+    particles = torch.empty(T, B, L, nx, dtype=x.dtype, device=x.device)
+    log_weights = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
+    ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
+    log_lik = torch.zeros(B, dtype=x.dtype, device=x.device)
+    log_w = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
+    arange = torch.arange(L, device=x.device).expand(B, L)
+    for k in range(T):
+        if k > 0:
+            do = effective_sample_size(log_w) < ess_threshold * L - 1e-9  # (B,)
+            anc = torch.where(do.unsqueeze(-1), resample(log_w, generator=generator), arange)
+            x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))
+            log_w = torch.where(do.unsqueeze(-1), torch.full_like(log_w, -math.log(L)), log_w)
+            noise = torch.randn(B, L, nx, dtype=x.dtype, device=x.device, generator=generator)
+            x = model.transition(x, data.u[k - 1]) + noise @ Cw.transpose(-1, -2)
+        logp, _ = observation_log_density(model, data, scale, k, x)
+        logits = log_w + logp
+        lse = torch.logsumexp(logits, dim=-1)
+        log_lik = log_lik + lse
+        log_w = logits - lse.unsqueeze(-1)
+        particles[k] = x
+        log_weights[k] = log_w
+        ess[k] = effective_sample_size(log_w)
+    if not torch.isfinite(log_lik).all():
+        bad = (~torch.isfinite(log_weights).any(-1)) | (~torch.isfinite(particles).all(-1).all(-1))
+        steps = torch.nonzero(bad.any(-1)).flatten().tolist()
+        where = f"first at time step {steps[0]}" if steps else "at an unknown step"
+        raise NumericalError(
+            "particle filter produced non-finite weights or states "
+            f"({where}); check that f and g return finite values at the current parameters"
+        )
+    return FilterOutput(particles, log_weights, log_lik, ess, scale)

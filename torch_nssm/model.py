@@ -1,0 +1,121 @@
+"""The state-space model and the batch of sequences the algorithms run on.
+
+Time convention (NOTES §7): sample ``k`` has input ``u_k`` and output ``y_k``; ``y_k`` observes
+``x_k``; the mean of ``x_{k+1}`` is ``f(x_k, u_k)``; ``x0_mean``/``x0_cov`` are the prior of the
+first state, the one ``y_0`` observes.
+
+Internally every sequence quantity is *time-major*: ``(T, B, ...)`` with ``B`` sequences padded to
+the longest length ``T``.  Padded outputs are NaN (missing) and padded transitions are masked out.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["StateSpaceModel", "SequenceBatch"]
+
+
+@dataclass
+class SequenceBatch:
+    """Inputs and outputs of ``B`` sequences, padded to a common length, time-major.
+
+    Attributes
+    ----------
+    u : Tensor, shape (T, B, nu)
+        Inputs (zeros after a sequence's end).
+    y : Tensor, shape (T, B, p)
+        Outputs; NaN marks a missing value (and the padding).
+    lengths : Tensor, shape (B,), long
+        Length of each sequence.
+    """
+
+    u: Tensor
+    y: Tensor
+    lengths: Tensor
+
+    @property
+    def n_steps(self) -> int:
+        return self.y.shape[0]
+
+    @property
+    def n_sequences(self) -> int:
+        return self.y.shape[1]
+
+    @property
+    def obs_mask(self) -> Tensor:
+        """``(T, B, p)`` bool, True where an output component is observed."""
+        return ~torch.isnan(self.y)
+
+    @property
+    def step_mask(self) -> Tensor:
+        """``(T, B)`` bool, True for the samples inside each sequence."""
+        k = torch.arange(self.n_steps, device=self.y.device).unsqueeze(1)
+        return k < self.lengths.unsqueeze(0)
+
+    @property
+    def transition_mask(self) -> Tensor:
+        """``(T - 1, B)`` bool, True where the transition ``k -> k+1`` is inside the sequence."""
+        return self.step_mask[1:]
+
+    @classmethod
+    def from_sequences(cls, us: list[Tensor], ys: list[Tensor]) -> SequenceBatch:
+        """Pad lists of ``(T_b, nu)`` inputs and ``(T_b, p)`` outputs into one batch."""
+        T = max(y.shape[0] for y in ys)
+        B = len(ys)
+        u0, y0 = us[0], ys[0]
+        u = torch.zeros(T, B, u0.shape[-1], dtype=u0.dtype, device=u0.device)
+        y = torch.full((T, B, y0.shape[-1]), math.nan, dtype=y0.dtype, device=y0.device)
+        for b, (ub, yb) in enumerate(zip(us, ys)):
+            u[: ub.shape[0], b] = ub
+            y[: yb.shape[0], b] = yb
+        lengths = torch.tensor([y.shape[0] for y in ys], device=y0.device)
+        return cls(u=u, y=y, lengths=lengths)
+
+    def unpad(self, values: Tensor) -> list[Tensor]:
+        """Split a time-major ``(T, B, ...)`` tensor into the list of per-sequence ``(T_b, ...)``."""
+        return [values[: int(n), b] for b, n in enumerate(self.lengths.tolist())]
+
+
+@dataclass
+class StateSpaceModel:
+    """``x_{k+1} = f(x_k, u_k) + w``, ``w ~ N(0, Rw)``; ``y_k = g(x_k, u_k) + v``, ``v ~ St(0, Rv, dof)``.
+
+    ``dof = inf`` is Gaussian measurement noise.  ``Rw``, ``Rv``, ``x0_mean``, ``x0_cov`` and ``dof``
+    are shared by all sequences, or carry a leading batch dimension ``B`` (one model per sequence).
+    """
+
+    f: nn.Module
+    g: nn.Module
+    Rw: Tensor
+    Rv: Tensor
+    dof: Tensor
+    x0_mean: Tensor
+    x0_cov: Tensor
+
+    @property
+    def state_dim(self) -> int:
+        return self.x0_mean.shape[-1]
+
+    @property
+    def gaussian(self) -> bool:
+        return bool(torch.isinf(self.dof).all())
+
+    def per_sequence(self, name: str, n_sequences: int) -> Tensor:
+        """Noise parameter ``name`` expanded to a leading batch dimension of ``n_sequences``."""
+        value = getattr(self, name)
+        core = {"Rw": 2, "Rv": 2, "x0_cov": 2, "x0_mean": 1, "dof": 0}[name]
+        if value.dim() == core:
+            return value.expand(n_sequences, *value.shape)
+        return value
+
+    def transition(self, x: Tensor, u: Tensor) -> Tensor:
+        """Mean of the next state for states ``(B, L, nx)`` and inputs ``(B, nu)``."""
+        return self.f(x, u.unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))
+
+    def observation(self, x: Tensor, u: Tensor) -> Tensor:
+        """Mean of the output for states ``(B, L, nx)`` and inputs ``(B, nu)``."""
+        return self.g(x, u.unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))

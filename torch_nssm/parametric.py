@@ -1,0 +1,91 @@
+"""Mean functions that are linear in their parameters, with a closed-form weighted M-step.
+
+Many physical models are affine in their unknowns: the paper's ``f = a x + b u`` and
+``g = c cos(x)``, or a discretised mechanical system whose stiffness entries are unknown.  For them
+the weighted least-squares problems of the M-step (paper eqs. 44-45, 48; NOTES §4) have closed-form
+solutions, which the EM engine uses instead of a gradient optimiser.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["LinearInParameters"]
+
+
+class LinearInParameters(nn.Module):
+    """Base class for ``out = offset(x, u) + Phi(x, u) @ theta``.
+
+    ``theta`` is the concatenation of the flattened ``nn.Parameter`` s of the module, in the order
+    of :meth:`torch.nn.Module.parameters`.  Subclasses implement :meth:`features`.  A parameter with
+    ``requires_grad=False`` is held fixed by :meth:`solve_weighted_least_squares`.
+    """
+
+    def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Regressors ``Phi`` of shape ``(..., d, P)`` and offset of shape ``(..., d)``."""
+        raise NotImplementedError
+
+    def theta(self) -> Tensor:
+        """All parameters as one flat vector."""
+        return torch.cat([p.reshape(-1) for p in self.parameters()])
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        Phi, offset = self.features(x, u)
+        return offset + (Phi @ self.theta().unsqueeze(-1)).squeeze(-1)
+
+    @torch.no_grad()
+    def solve_weighted_least_squares(
+        self,
+        x: Tensor,
+        u: Tensor,
+        target: Tensor,
+        weight: Tensor,
+        precision: Tensor | None = None,
+        ridge: float = 1e-12,
+    ) -> None:
+        """Set the free parameters to ``argmin sum_n w_n r_n^T P_n r_n``, ``r_n = target_n - out_n``.
+
+        Parameters
+        ----------
+        x : Tensor, shape (n, nx)
+        u : Tensor, shape (n, nu)
+        target : Tensor, shape (n, d)
+            Targets; entries where ``precision`` has zero rows/columns are ignored.
+        weight : Tensor, shape (n,)
+            Non-negative row weights.
+        precision : Tensor, shape (d, d) or (n, d, d), optional
+            Metric ``P`` (inverse noise covariance); identity if omitted.
+        ridge : float
+            Relative Tikhonov term keeping the normal equations solvable.
+        """
+        params = list(self.parameters())
+        free = torch.cat(
+            [torch.full((p.numel(),), p.requires_grad, dtype=torch.bool, device=p.device) for p in params]
+        )
+        if not bool(free.any()):
+            return
+        Phi, offset = self.features(x, u)
+        theta = self.theta()
+        offset = offset + (Phi[..., ~free] @ theta[~free].unsqueeze(-1)).squeeze(-1)
+        A = Phi[..., free]  # (n, d, F)
+        r = torch.nan_to_num(target - offset)
+        d = A.shape[-2]
+        if precision is None:
+            precision = torch.eye(d, dtype=A.dtype, device=A.device)
+        PA = precision @ A
+        G = torch.einsum("n,ndf,ndg->fg", weight, A, PA)
+        h = torch.einsum("n,ndf,nd->f", weight, PA, r)
+        G = G + ridge * (torch.diagonal(G).mean().abs() + 1e-300) * torch.eye(
+            G.shape[0], dtype=G.dtype, device=G.device
+        )
+        sol = torch.linalg.solve(G, h)
+        if not bool(torch.isfinite(sol).all()):
+            return
+        new_theta = theta.clone()
+        new_theta[free] = sol
+        offset_i = 0
+        for p in params:
+            n = p.numel()
+            p.copy_(new_theta[offset_i : offset_i + n].view_as(p))
+            offset_i += n
