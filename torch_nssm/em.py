@@ -24,11 +24,9 @@ from .mstep import (
     dof_update,
 )
 from .noise import latent_scale_expectations
-from .smoothing import SmootherOutput, ffbsm
+from .smoothing import SMOOTHERS, SmootherOutput, ffbsi, ffbsm
 
 __all__ = ["EStepOutput", "MStepOptions", "e_step", "m_step", "SMOOTHERS"]
-
-SMOOTHERS = ("ffbsm",)
 
 
 @dataclass
@@ -95,6 +93,10 @@ def e_step(
     )
     if smoother == "ffbsm":
         smooth = ffbsm(model, data, filt, chunk_size=chunk_size)
+    elif smoother == "ffbsi":
+        smooth = ffbsi(model, data, filt, method="reject", generator=generator)
+    elif smoother == "mcmc":
+        smooth = ffbsi(model, data, filt, method="mcmc", generator=generator)
     else:
         raise ValueError(f"smoother must be one of {SMOOTHERS}, got {smoother!r}")
     e_lam, e_log = latent_scales(model, data, filt)

@@ -39,6 +39,9 @@ class FilterOutput:
         Effective sample size of the filter weights at each step.
     scale : MaskedScale
         The measurement-noise scale restricted to the observed components, per ``(T, B)``.
+    ancestors : Tensor, shape (T, B, L), long
+        ``ancestors[k, b, l]`` is the index at ``k - 1`` of the parent of particle ``l`` at ``k``
+        (``ancestors[0]`` is the identity).
     """
 
     particles: Tensor
@@ -46,6 +49,7 @@ class FilterOutput:
     log_likelihood: Tensor
     ess: Tensor
     scale: MaskedScale
+    ancestors: Tensor
 
 
 def observation_log_density(
@@ -123,13 +127,16 @@ def particle_filter(
     particles = torch.empty(T, B, L, nx, dtype=x.dtype, device=x.device)
     log_weights = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
     ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
+    ancestors = torch.empty(T, B, L, dtype=torch.long, device=x.device)
     log_lik = torch.zeros(B, dtype=x.dtype, device=x.device)
     log_w = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
     arange = torch.arange(L, device=x.device).expand(B, L)
+    ancestors[0] = arange
     for k in range(T):
         if k > 0:
             do = effective_sample_size(log_w) < ess_threshold * L - 1e-9  # (B,)
             anc = torch.where(do.unsqueeze(-1), resample(log_w, generator=generator), arange)
+            ancestors[k] = anc
             x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))
             log_w = torch.where(do.unsqueeze(-1), torch.full_like(log_w, -math.log(L)), log_w)
             noise = torch.randn(B, L, nx, dtype=x.dtype, device=x.device, generator=generator)
@@ -150,4 +157,4 @@ def particle_filter(
             "particle filter produced non-finite weights or states "
             f"({where}); check that f and g return finite values at the current parameters"
         )
-    return FilterOutput(particles, log_weights, log_lik, ess, scale)
+    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors)

@@ -13,6 +13,14 @@ weights are ``W^{ij} = K^{ij} W_{k+1|N}^j`` and everything the M-step needs is a
     m_k^i     = sum_j K^{ij} W_{k+1|N}^j x_{k+1}^j
 
 The ``j`` dimension is processed in chunks, so memory is ``O(B * L * chunk)`` per step.
+
+Backward simulation (FFBSi) draws ``M`` smoothed trajectories instead, in ``O(T (L + M))`` expected
+time: each backward index is proposed from the filter weights and accepted with probability
+``exp(-|z_x^j - z_f^i|^2 / 2) <= 1`` (rejection sampling, Douc et al. 2011), or moved by
+independent Metropolis-Hastings steps started at the particle's genealogical parent (the MCMC
+backward kernel of Bunch & Godsill 2013, Dau & Chopin 2022).  Pure rejection has unbounded expected
+cost, so after ``max_tries`` failed proposals the remaining indices are drawn exactly (``O(L)``
+each).  The trajectories yield the same statistics as FFBSm, estimated by counts.
 """
 
 from __future__ import annotations
@@ -25,7 +33,7 @@ from torch import Tensor
 from .filtering import FilterOutput
 from .model import SequenceBatch, StateSpaceModel
 
-__all__ = ["SmootherOutput", "ffbsm", "smoothed_moments", "TINY_WEIGHT"]
+__all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT", "SMOOTHERS"]
 
 #: Smoothing weights below this are set to zero: products of such weights are denormal numbers,
 #: which slow CPU mat-vecs about 17x (NOTES §7), and they carry no information.
@@ -142,3 +150,131 @@ def smoothed_moments(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Te
     d = particles - mean.unsqueeze(-2)
     cov = (w * d).transpose(-1, -2) @ d
     return mean, cov
+
+
+def _whitening(model: StateSpaceModel, B: int, like: Tensor) -> Tensor:
+    """Transpose of the inverse Cholesky factor of ``Rw``, shape (B, nx, nx)."""
+    Cw = torch.linalg.cholesky(model.per_sequence("Rw", B))
+    eye = torch.eye(Cw.shape[-1], dtype=like.dtype, device=like.device)
+    return torch.linalg.solve_triangular(Cw, eye.expand_as(Cw), upper=False).transpose(-1, -2)
+
+
+def _draw(log_weights: Tensor, n: int, generator) -> Tensor:
+    """``n`` i.i.d. indices per row of the normalised log-weights ``(B, L)`` (inverse CDF)."""
+    cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
+    u = torch.rand(log_weights.shape[0], n, dtype=cdf.dtype, device=cdf.device, generator=generator)
+    return torch.searchsorted(cdf, u * cdf[:, -1:]).clamp_(max=log_weights.shape[-1] - 1)
+
+
+def _log_kernel(zf: Tensor, idx: Tensor, zx_traj: Tensor) -> Tensor:
+    """``-|z_x^j - z_f^i|^2 / 2`` for candidate ancestors ``idx`` (B, M) of trajectories (B, M, nx)."""
+    d = zx_traj - torch.gather(zf, 1, idx.unsqueeze(-1).expand(*idx.shape, zf.shape[-1]))
+    return -0.5 * (d * d).sum(-1)
+
+
+@torch.no_grad()
+def ffbsi(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    filt: FilterOutput,
+    *,
+    n_trajectories: int | None = None,
+    method: str = "reject",
+    max_tries: int = 10,
+    mcmc_steps: int = 2,
+    generator: torch.Generator | None = None,
+) -> SmootherOutput:
+    """Backward-simulation particle smoother (FFBSi), ``O(T (L + M))`` per pass.
+
+    Parameters
+    ----------
+    model, data, filt
+        As for :func:`ffbsm`.
+    n_trajectories : int, optional
+        Number ``M`` of smoothed trajectories; the number of particles by default.
+    method : {"reject", "mcmc"}
+        ``"reject"``: rejection sampling with an exact fallback after ``max_tries`` failed
+        proposals (exact draws from the backward kernel).  ``"mcmc"``: ``mcmc_steps`` independent
+        Metropolis-Hastings moves from the genealogical parent (not exact per step, but leaves the
+        joint smoothing distribution invariant; cheapest).
+    max_tries : int
+        Rejection proposals per index before the exact fallback.
+    mcmc_steps : int
+        Metropolis-Hastings moves per index.
+    generator : torch.Generator, optional
+
+    Returns
+    -------
+    SmootherOutput
+        Statistics estimated from the trajectories: ``W_{k|N}^i`` is the fraction of trajectories
+        through particle ``i`` at time ``k``.
+    """
+    if method not in ("reject", "mcmc"):
+        raise ValueError(f"method must be 'reject' or 'mcmc', got {method!r}")
+    X, logW = filt.particles, filt.log_weights
+    T, B, L, nx = X.shape
+    M = L if n_trajectories is None else int(n_trajectories)
+    Cinv_t = _whitening(model, B, X)
+    trans = data.transition_mask
+    dtype, device = X.dtype, X.device
+
+    log_ws = torch.empty_like(logW)
+    log_ws[T - 1] = logW[T - 1]
+    next_mean = torch.empty(T - 1, B, L, nx, dtype=dtype, device=device)
+    trans_w = torch.zeros(T - 1, B, L, dtype=dtype, device=device)
+    scatter = torch.zeros(B, nx, nx, dtype=dtype, device=device)
+
+    J_next = _draw(logW[T - 1], M, generator)  # (B, M)
+    for k in range(T - 2, -1, -1):
+        x_next = torch.gather(X[k + 1], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+        zf = model.transition(X[k], data.u[k]) @ Cinv_t
+        zx = x_next @ Cinv_t
+        if method == "reject":
+            J = torch.zeros(B, M, dtype=torch.long, device=device)
+            pending = torch.ones(B, M, dtype=torch.bool, device=device)
+            for _ in range(max_tries):
+                prop = _draw(logW[k], M, generator)
+                log_u = torch.log(torch.rand(B, M, dtype=dtype, device=device, generator=generator))
+                accept = pending & (log_u < _log_kernel(zf, prop, zx))
+                J = torch.where(accept, prop, J)
+                pending = pending & ~accept
+                if not bool(pending.any()):
+                    break
+            if bool(pending.any()):
+                b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
+                d = zx[b_idx, m_idx].unsqueeze(1) - zf[b_idx]  # (P, L, nx)
+                logits = logW[k][b_idx] - 0.5 * (d * d).sum(-1)
+                J[b_idx, m_idx] = _draw(logits - torch.logsumexp(logits, -1, keepdim=True), 1, generator)[:, 0]
+        else:
+            J = torch.gather(filt.ancestors[k + 1], 1, J_next)
+            log_t = _log_kernel(zf, J, zx)
+            for _ in range(mcmc_steps):
+                prop = _draw(logW[k], M, generator)
+                log_t_prop = _log_kernel(zf, prop, zx)
+                log_u = torch.log(torch.rand(B, M, dtype=dtype, device=device, generator=generator))
+                accept = log_u < log_t_prop - log_t
+                J = torch.where(accept, prop, J)
+                log_t = torch.where(accept, log_t_prop, log_t)
+        valid = trans[k]
+        # Rows past a sequence's end restart from the filter (their transitions are masked out).
+        J = torch.where(valid.unsqueeze(-1), J, _draw(logW[k], M, generator))
+        s = torch.zeros(B, L, dtype=dtype, device=device).scatter_add_(
+            1, J, torch.full((B, M), 1.0 / M, dtype=dtype, device=device)
+        )
+        m = torch.zeros(B, L, nx, dtype=dtype, device=device).scatter_add_(
+            1, J.unsqueeze(-1).expand(B, M, nx), x_next / M
+        )
+        pos = s > 0
+        xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[k])
+        S_next = torch.einsum("bmp,bmq->bpq", x_next, x_next) / M
+        MmT = torch.einsum("bi,bip,biq->bpq", s, xbar, xbar)
+        scatter = scatter + torch.where(valid.view(B, 1, 1), S_next - MmT, torch.zeros_like(S_next))
+        log_ws[k] = torch.where(valid.unsqueeze(-1), torch.log(s), logW[k])
+        next_mean[k] = xbar
+        trans_w[k] = torch.where(valid.unsqueeze(-1), s, torch.zeros_like(s))
+        J_next = J
+    return SmootherOutput(log_ws, next_mean, trans_w, scatter)
+
+
+#: The smoothers of the E-step, by name.
+SMOOTHERS = ("ffbsm", "ffbsi", "mcmc")
