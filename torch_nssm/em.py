@@ -46,6 +46,13 @@ class EStepOutput:
     e_lam: Tensor
     e_log_lam: Tensor
 
+    def select(self, index) -> EStepOutput:
+        """The E-step output of the sequences ``index``."""
+        return EStepOutput(
+            self.filter.select(index), self.smoother.select(index),
+            self.e_lam[:, index], self.e_log_lam[:, index],
+        )
+
     @property
     def smoothing_weights(self) -> Tensor:
         """``W_{k|N}``, shape (T, B, L)."""
@@ -64,11 +71,14 @@ class EStepOutput:
 
 def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutput) -> tuple[Tensor, Tensor]:
     """``<lam>`` and ``<log lam>`` of every particle at every step (NOTES §1)."""
-    T, B, L, _ = filt.particles.shape
+    T, B, L, nx = filt.particles.shape
     scale = filt.scale
     with torch.no_grad():
-        u = data.u.unsqueeze(2).expand(T, B, L, data.u.shape[-1])
-        resid = data.y.unsqueeze(2) - model.g(filt.particles, u)
+        # Sequence-major (B, T*L, .) so that per-sequence (stacked) modules see their own rows.
+        x = filt.particles.transpose(0, 1).reshape(B, T * L, nx)
+        u = data.u.transpose(0, 1).unsqueeze(2).expand(B, T, L, data.u.shape[-1]).reshape(B, T * L, -1)
+        g = model.g(x, u).reshape(B, T, L, -1).transpose(0, 1)
+        resid = data.y.unsqueeze(2) - g
         resid = torch.where(scale.mask.unsqueeze(2), resid, torch.zeros_like(resid))
         z = torch.einsum("tbij,tblj->tbli", scale.chol_inv, resid)
         delta2 = (z * z).sum(-1)

@@ -51,6 +51,13 @@ class FilterOutput:
     scale: MaskedScale
     ancestors: Tensor
 
+    def select(self, index) -> FilterOutput:
+        """The filter output of the sequences ``index``."""
+        return FilterOutput(
+            self.particles[:, index], self.log_weights[:, index], self.log_likelihood[index],
+            self.ess[:, index], self.scale.select(index), self.ancestors[:, index],
+        )
+
 
 def observation_log_density(
     model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor

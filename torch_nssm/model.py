@@ -75,6 +75,10 @@ class SequenceBatch:
         lengths = torch.tensor([y.shape[0] for y in ys], device=y0.device)
         return cls(u=u, y=y, lengths=lengths)
 
+    def select(self, index) -> SequenceBatch:
+        """The sub-batch of the sequences ``index`` (a slice or index tensor)."""
+        return SequenceBatch(u=self.u[:, index], y=self.y[:, index], lengths=self.lengths[index])
+
     def unpad(self, values: Tensor) -> list[Tensor]:
         """Split a time-major ``(T, B, ...)`` tensor into the list of per-sequence ``(T_b, ...)``."""
         return [values[: int(n), b] for b, n in enumerate(self.lengths.tolist())]

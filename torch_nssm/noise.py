@@ -54,6 +54,12 @@ class MaskedScale:
     n_obs: Tensor
     mask: Tensor
 
+    def select(self, index) -> MaskedScale:
+        """The scales of the sequences ``index`` (second dimension of time-major ``(T, B, ...)``)."""
+        return MaskedScale(
+            self.chol_inv[:, index], self.logdet[:, index], self.n_obs[:, index], self.mask[:, index]
+        )
+
     def whiten(self, resid: Tensor) -> Tensor:
         """Whiten residuals of shape ``(..., L, p)`` (leading dims as the mask's, plus particles)."""
         resid = torch.where(self.mask.unsqueeze(-2), resid, torch.zeros_like(resid))

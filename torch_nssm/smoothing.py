@@ -62,6 +62,13 @@ class SmootherOutput:
     transition_weights: Tensor
     residual_scatter: Tensor
 
+    def select(self, index) -> SmootherOutput:
+        """The smoother output of the sequences ``index``."""
+        return SmootherOutput(
+            self.log_weights[:, index], self.next_mean[:, index],
+            self.transition_weights[:, index], self.residual_scatter[index],
+        )
+
 
 def _chunks(n: int, size: int):
     for start in range(0, n, size):
