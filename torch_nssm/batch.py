@@ -115,9 +115,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             est_b.random_state = estimator.random_state + b
         estimators.append(est_b)
         models.append(est_b._initial_model(datas[-1], device))
-    all_data = SequenceBatch.from_sequences(
-        [d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas]
-    )
+    all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
     options = estimator._mstep_options()
     generator = estimator._generator(device)
     n_obs = [int(d.obs_mask.any(-1).sum()) for d in datas]
@@ -138,9 +136,13 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             idx = torch.tensor(active, device=device)
             batch_model = _stack_models([models[b] for b in active])
             est = e_step(
-                batch_model, all_data.select(idx), estimator.n_particles,
-                smoother=estimator.smoother, resampling=estimator.resampling,
-                ess_threshold=estimator.ess_threshold, chunk_size=estimator.chunk_size,
+                batch_model,
+                all_data.select(idx),
+                estimator.n_particles,
+                smoother=estimator.smoother,
+                resampling=estimator.resampling,
+                ess_threshold=estimator.ess_threshold,
+                chunk_size=estimator.chunk_size,
                 generator=generator,
             )
             still = []

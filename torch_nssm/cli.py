@@ -101,10 +101,10 @@ def run_demo(
     print("(Rv of the robust fit is the Student-t scale; its variance is Rv * dof / (dof - 2).)")
 
     ow = fits["robust"].outlier_weights_
-    flagged = ow < 0.5
+    flagged = ow < 0.2
     true_out = data.outlier_mask
     print(
-        f"\nOutliers: {int(flagged.sum())} samples flagged (outlier weight E[lambda|y] < 0.5); "
+        f"\nOutliers: {int(flagged.sum())} samples flagged (outlier weight E[lambda|y] < 0.2); "
         f"{int((flagged & true_out).sum())} of the {int(true_out.sum())} injected ones among them, "
         f"{int((flagged & ~true_out).sum())} regular samples flagged."
     )
@@ -126,7 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     _demo_parser(sub)
     args = parser.parse_args(argv)
     run_demo(
-        n_samples=args.n_samples, outliers=args.outliers, particles=args.particles,
-        iterations=args.iterations, seed=args.seed, gaussian=args.gaussian,
+        n_samples=args.n_samples,
+        outliers=args.outliers,
+        particles=args.particles,
+        iterations=args.iterations,
+        seed=args.seed,
+        gaussian=args.gaussian,
     )
     return 0

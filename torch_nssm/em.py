@@ -15,13 +15,13 @@ from torch import Tensor
 from .filtering import FilterOutput, NumericalError, particle_filter
 from .model import SequenceBatch, StateSpaceModel
 from .mstep import (
+    dof_update,
     fit_weighted_regression,
     initial_state_update,
     measurement_noise_update,
     observation_rows,
     process_noise_update,
     transition_rows,
-    dof_update,
 )
 from .noise import latent_scale_expectations
 from .smoothing import SMOOTHERS, SmootherOutput, ffbsi, ffbsm
@@ -38,7 +38,7 @@ class EStepOutput:
     filter : FilterOutput
     smoother : SmootherOutput
     e_lam, e_log_lam : Tensor, shape (T, B, L)
-        ``<lam>`` and ``<log lam>`` for each particle (1 and 0 where ``y_k`` is missing).
+        ``<lam>`` and ``<log lam>`` for each particle (not used where ``y_k`` is missing).
     """
 
     filter: FilterOutput
@@ -49,8 +49,10 @@ class EStepOutput:
     def select(self, index) -> EStepOutput:
         """The E-step output of the sequences ``index``."""
         return EStepOutput(
-            self.filter.select(index), self.smoother.select(index),
-            self.e_lam[:, index], self.e_log_lam[:, index],
+            self.filter.select(index),
+            self.smoother.select(index),
+            self.e_lam[:, index],
+            self.e_log_lam[:, index],
         )
 
     @property
@@ -163,7 +165,7 @@ def m_step(
         model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam
     )
     fit_weighted_regression(model.g, rows_g, **fit)
-    Rv = measurement_noise_update(model.g, rows_g, data)
+    Rv = measurement_noise_update(model.g, rows_g, data, model.Rv, sw)
 
     dof = model.dof
     if options.fit_dof and not model.gaussian:

@@ -54,8 +54,12 @@ class FilterOutput:
     def select(self, index) -> FilterOutput:
         """The filter output of the sequences ``index``."""
         return FilterOutput(
-            self.particles[:, index], self.log_weights[:, index], self.log_likelihood[index],
-            self.ess[:, index], self.scale.select(index), self.ancestors[:, index],
+            self.particles[:, index],
+            self.log_weights[:, index],
+            self.log_likelihood[index],
+            self.ess[:, index],
+            self.scale.select(index),
+            self.ancestors[:, index],
         )
 
 
@@ -141,7 +145,10 @@ def particle_filter(
     ancestors[0] = arange
     for k in range(T):
         if k > 0:
-            do = effective_sample_size(log_w) < ess_threshold * L - 1e-9  # (B,)
+            if ess_threshold >= 1.0:
+                do = torch.ones(B, dtype=torch.bool, device=x.device)
+            else:
+                do = effective_sample_size(log_w) < ess_threshold * L  # (B,)
             anc = torch.where(do.unsqueeze(-1), resample(log_w, generator=generator), arange)
             ancestors[k] = anc
             x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))

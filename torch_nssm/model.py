@@ -47,8 +47,8 @@ class SequenceBatch:
 
     @property
     def obs_mask(self) -> Tensor:
-        """``(T, B, p)`` bool, True where an output component is observed."""
-        return ~torch.isnan(self.y)
+        """``(T, B, p)`` bool, True where an output component is observed (never in the padding)."""
+        return ~torch.isnan(self.y) & self.step_mask.unsqueeze(-1)
 
     @property
     def step_mask(self) -> Tensor:

@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from .filtering import FilterOutput
 from .model import SequenceBatch, StateSpaceModel
-from .noise import latent_scale_expectations, solve_dof
+from .noise import solve_dof
 from .smoothing import SmootherOutput
 
 __all__ = [
@@ -70,11 +70,12 @@ class RegressionRows:
     precision: Tensor
 
 
-def _flatten_rows(keep: Tensor, X: Tensor, U: Tensor, *rest: Tensor) -> list[Tensor]:
-    """Select the rows ``keep`` (shape ``(T, B, L)``) of particle-indexed and time-indexed arrays."""
+def _flatten_rows(keep: Tensor, per_particle: list[Tensor], per_step: list[Tensor]) -> list[Tensor]:
+    """Select the rows ``keep`` (``(T, B, L)``) of per-particle arrays ``(T, B, L, ...)`` and of
+    per-step arrays ``(T, B, ...)`` (repeated over the particles), in that order."""
     T, B, L = keep.shape
-    out = [X[keep], U.unsqueeze(2).expand(T, B, L, U.shape[-1])[keep]]
-    out += [r[keep] if r.dim() >= 3 and r.shape[2] == L else r.unsqueeze(2).expand(T, B, L, *r.shape[2:])[keep] for r in rest]
+    out = [a[keep] for a in per_particle]
+    out += [a.unsqueeze(2).expand(T, B, L, *a.shape[2:])[keep] for a in per_step]
     return out
 
 
@@ -84,7 +85,7 @@ def transition_rows(
     """Rows of the ``theta_f`` regression (NOTES §4): ``(x_k^i, u_k) -> xbar_k^i``, weight ``s_k^i``."""
     w = smooth.transition_weights
     keep = w > ROW_WEIGHT_CUTOFF
-    x, u, target, weight = _flatten_rows(keep, filt.particles[:-1], data.u[:-1], smooth.next_mean, w)
+    x, target, weight, u = _flatten_rows(keep, [filt.particles[:-1], smooth.next_mean, w], [data.u[:-1]])
     return RegressionRows(x, u, target, weight, torch.linalg.inv(_shared(model.Rw)))
 
 
@@ -114,8 +115,8 @@ def observation_rows(
     observed = data.obs_mask.any(-1)  # (T, B)
     keep = (W > ROW_WEIGHT_CUTOFF) & observed.unsqueeze(-1)
     scale = filt.scale
-    x, u, y, sw, lam, log_lam, chol_inv, mask = _flatten_rows(
-        keep, filt.particles, data.u, data.y, W, e_lam, e_log_lam, scale.chol_inv, scale.mask
+    x, sw, lam, log_lam, u, y, chol_inv, mask = _flatten_rows(
+        keep, [filt.particles, W, e_lam, e_log_lam], [data.u, data.y, scale.chol_inv, scale.mask]
     )
     m = mask.to(x.dtype)
     precision = (chol_inv.transpose(-1, -2) @ chol_inv) * m.unsqueeze(-1) * m.unsqueeze(-2)
@@ -168,17 +169,30 @@ def fit_weighted_regression(
         module.solve_weighted_least_squares(rows.x, rows.u, rows.target, rows.weight, rows.precision)
     elif optimizer == "lbfgs":
         opt = torch.optim.LBFGS(
-            params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe",
-            tolerance_grad=1e-10, tolerance_change=1e-12,
+            params,
+            lr=1.0,
+            max_iter=max_iter,
+            line_search_fn="strong_wolfe",
+            tolerance_grad=1e-10,
+            tolerance_change=1e-12,
         )
 
         def closure():
             opt.zero_grad()
             loss = weighted_loss(module, rows)
+            if not bool(torch.isfinite(loss)):
+                raise _NonFiniteLoss
             loss.backward()
             return loss
 
-        opt.step(closure)
+        try:
+            opt.step(closure)
+        except (_NonFiniteLoss, IndexError, RuntimeError):
+            # torch's line search fails obscurely on NaN losses: keep the previous parameters.
+            module.load_state_dict(backup)
+            for p in params:
+                p.grad = None
+            return before
     elif optimizer == "adam":
         opt = torch.optim.Adam(params, lr=learning_rate)
         for _ in range(max_iter):
@@ -198,6 +212,10 @@ def fit_weighted_regression(
     return after
 
 
+class _NonFiniteLoss(ArithmeticError):
+    """The weighted loss became NaN or infinite during an optimiser step."""
+
+
 def weighted_scatter(module: nn.Module, rows: RegressionRows) -> Tensor:
     """``sum_n w_n r_n r_n^T`` of the residuals at the module's current parameters."""
     with torch.no_grad():
@@ -215,17 +233,40 @@ def process_noise_update(
 
 
 def measurement_noise_update(
-    g: nn.Module, rows: RegressionRows, data: SequenceBatch, jitter: float = 1e-10
+    g: nn.Module,
+    rows: RegressionRows,
+    data: SequenceBatch,
+    Rv_old: Tensor,
+    smoothing_weight: Tensor,
+    jitter: float = 1e-10,
 ) -> Tensor:
-    """Closed-form ``Rv`` (eq. 32) at the current ``theta_g``.
+    """Closed-form ``Rv`` (eq. 32) at the current ``theta_g``, averaged over the observed samples.
 
-    With several outputs and missing components, entry ``(i, j)`` averages over the samples where
-    both components are observed.
+    With several outputs and some components missing, the missing part of each residual is
+    completed by its conditional expectation given the observed part (under ``Rv_old``), and the
+    conditional covariance is added: ``E[lam r r^T | r_o] = <lam> rhat rhat^T + (R_mm - R_mo
+    R_oo^-1 R_om)``, the standard EM for incomplete multivariate t data.  The result is positive
+    definite whenever ``Rv_old`` is.
+
+    Parameters
+    ----------
+    rows : RegressionRows
+        Observation rows (weight ``W <lam>``, precision ``Rv_old^-1`` on the observed block).
+    Rv_old : Tensor, shape (p, p)
+        The scale matrix of the E-step.
+    smoothing_weight : Tensor, shape (n,)
+        ``W_{k|N}^l`` of the rows.
     """
-    num = weighted_scatter(g, rows)
-    m = data.obs_mask.to(num.dtype)  # (T, B, p)
-    den = torch.einsum("tbp,tbq->pq", m, m).clamp_min(1.0)
-    return _symmetric_pd(num / den, jitter)
+    with torch.no_grad():
+        r = _residuals(g, rows)
+        R = _shared(Rv_old)
+        K = R @ rows.precision  # identity on the observed block, R_mo R_oo^-1 below it
+        rhat = (K @ r.unsqueeze(-1)).squeeze(-1)
+        cond_cov = R - K @ R  # zero unless a component is missing
+        num = torch.einsum("n,np,nq->pq", rows.weight, rhat, rhat)
+        num = num + torch.einsum("n,npq->pq", smoothing_weight, cond_cov)
+    n = data.obs_mask.any(-1).sum().clamp_min(1).to(num.dtype)
+    return _symmetric_pd(num / n, jitter)
 
 
 def dof_update(
@@ -241,13 +282,11 @@ def dof_update(
     return solve_dof(c, *bounds).to(smoothing_weight.dtype)
 
 
-def initial_state_update(
-    filt: FilterOutput, smooth: SmootherOutput, floor: Tensor
-) -> tuple[Tensor, Tensor]:
+def initial_state_update(filt: FilterOutput, smooth: SmootherOutput, floor: Tensor) -> tuple[Tensor, Tensor]:
     """Prior of the first state from its smoothed distribution, pooled over sequences.
 
-    The covariance is floored by ``floor`` (the process-noise covariance): with a single record
-    the maximum-likelihood prior would otherwise collapse to a point over the iterations.
+    ``floor`` (the process-noise covariance) is *added* to the smoothed covariance: with a single
+    record the maximum-likelihood prior would otherwise collapse to a point over the iterations.
     """
     w = torch.exp(smooth.log_weights[0]).unsqueeze(-1)  # (B, L, 1)
     x = filt.particles[0]  # (B, L, nx)

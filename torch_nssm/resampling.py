@@ -32,11 +32,14 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
 def _inverse_cdf(log_weights: Tensor, positions: Tensor) -> Tensor:
     """Indices ``i`` with ``cdf[i-1] <= positions < cdf[i]`` (positions sorted in ``[0, 1)``)."""
     cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
+    cdf = cdf / cdf[..., -1:]  # exact 1 at the end despite rounding
     idx = torch.searchsorted(cdf, positions.contiguous(), right=True)
     return idx.clamp_(max=log_weights.shape[-1] - 1)
 
 
-def multinomial(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
+def multinomial(
+    log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None
+) -> Tensor:
     """Multinomial resampling: ``n`` i.i.d. draws from the weights of each row."""
     n = log_weights.shape[-1] if n is None else n
     w = torch.softmax(log_weights, dim=-1)
@@ -66,9 +69,11 @@ def residual(log_weights: Tensor, n: int | None = None, generator: torch.Generat
     B, L = log_weights.shape
     n = L if n is None else n
     w = torch.softmax(log_weights, dim=-1)
-    counts = torch.floor(n * w)
+    # n * W can round to 0.999... for exactly representable copy counts: nudge before the floor
+    # (the total stays <= n while n * 1e-9 < 1).
+    counts = torch.floor(n * w + 1e-9)
     n_rest = n - counts.sum(-1)  # (B,)
-    rest = n * w - counts
+    rest = (n * w - counts).clamp_min(0.0)
     rest = torch.where(rest.sum(-1, keepdim=True) > 0, rest, torch.ones_like(rest))
     draws = torch.multinomial(rest, n, replacement=True, generator=generator)  # (B, n)
     use = torch.arange(n, device=w.device).unsqueeze(0) < n_rest.unsqueeze(-1)
@@ -95,6 +100,4 @@ def get_resampler(name: str) -> Resampler:
     try:
         return RESAMPLING_SCHEMES[name]
     except KeyError:
-        raise ValueError(
-            f"resampling must be one of {sorted(RESAMPLING_SCHEMES)}, got {name!r}"
-        ) from None
+        raise ValueError(f"resampling must be one of {sorted(RESAMPLING_SCHEMES)}, got {name!r}") from None

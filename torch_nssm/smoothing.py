@@ -65,8 +65,10 @@ class SmootherOutput:
     def select(self, index) -> SmootherOutput:
         """The smoother output of the sequences ``index``."""
         return SmootherOutput(
-            self.log_weights[:, index], self.next_mean[:, index],
-            self.transition_weights[:, index], self.residual_scatter[index],
+            self.log_weights[:, index],
+            self.next_mean[:, index],
+            self.transition_weights[:, index],
+            self.residual_scatter[index],
         )
 
 
@@ -251,7 +253,9 @@ def ffbsi(
                 b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
                 d = zx[b_idx, m_idx].unsqueeze(1) - zf[b_idx]  # (P, L, nx)
                 logits = logW[k][b_idx] - 0.5 * (d * d).sum(-1)
-                J[b_idx, m_idx] = _draw(logits - torch.logsumexp(logits, -1, keepdim=True), 1, generator)[:, 0]
+                J[b_idx, m_idx] = _draw(logits - torch.logsumexp(logits, -1, keepdim=True), 1, generator)[
+                    :, 0
+                ]
         else:
             J = torch.gather(filt.ancestors[k + 1], 1, J_next)
             log_t = _log_kernel(zf, J, zx)
