@@ -1,0 +1,223 @@
+"""Shared fixtures of the engine tests: linear mean functions and a small linear-Gaussian system."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from torch_nssm.model import SequenceBatch, StateSpaceModel
+
+DTYPE = torch.float64
+
+
+@pytest.fixture(autouse=True, scope="session")
+def _single_thread():
+    """Run the suite single-threaded.
+
+    The engine runs many small per-step kernels.  On a 2-core machine that is busy with anything
+    else, torch's intra-op thread pool makes them 100-300x slower (measured: a 30-step filter took
+    0.01 s CPU with 1 thread and 1.3 s with 2 threads while the other core was loaded; NOTES §7).
+    """
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+class LinearF(nn.Module):
+    """``f(x, u) = x A^T + u B^T`` with matrix parameters (a plain module: no closed form)."""
+
+    def __init__(self, A, B):
+        super().__init__()
+        self.A = nn.Parameter(torch.as_tensor(np.asarray(A), dtype=DTYPE).clone())
+        self.B = nn.Parameter(torch.as_tensor(np.asarray(B), dtype=DTYPE).clone())
+
+    def forward(self, x, u):
+        return x @ self.A.T + u @ self.B.T
+
+
+class LinearG(nn.Module):
+    """``g(x, u) = x C^T + u D^T`` with matrix parameters."""
+
+    def __init__(self, C, D):
+        super().__init__()
+        self.C = nn.Parameter(torch.as_tensor(np.asarray(C), dtype=DTYPE).clone())
+        self.D = nn.Parameter(torch.as_tensor(np.asarray(D), dtype=DTYPE).clone())
+
+    def forward(self, x, u):
+        return x @ self.C.T + u @ self.D.T
+
+
+class NonlinearF(nn.Module):
+    """``f(x, u) = [a x_1 + b u, 0.5 x_2 + c sin(x_1)]`` (2 states, parameters a, b, c)."""
+
+    def __init__(self, a=0.9, b=1.0, c=0.4):
+        super().__init__()
+        self.a = nn.Parameter(torch.tensor(float(a), dtype=DTYPE))
+        self.b = nn.Parameter(torch.tensor(float(b), dtype=DTYPE))
+        self.c = nn.Parameter(torch.tensor(float(c), dtype=DTYPE))
+
+    def forward(self, x, u):
+        x1, x2 = x[..., 0], x[..., 1]
+        return torch.stack(
+            [self.a * x1 + self.b * u[..., 0], 0.5 * x2 + self.c * torch.sin(x1)], -1
+        )
+
+
+class CosineG(nn.Module):
+    """``g(x, u) = [c cos(x_1), x_1 + 0.5 x_2 + d u]`` (2 outputs, parameters c, d)."""
+
+    def __init__(self, c=1.0, d=0.3):
+        super().__init__()
+        self.c = nn.Parameter(torch.tensor(float(c), dtype=DTYPE))
+        self.d = nn.Parameter(torch.tensor(float(d), dtype=DTYPE))
+
+    def forward(self, x, u):
+        x1, x2 = x[..., 0], x[..., 1]
+        return torch.stack([self.c * torch.cos(x1), x1 + 0.5 * x2 + self.d * u[..., 0]], -1)
+
+
+class Paper41F(nn.Module):
+    """The paper's §4.1 transition ``f = a x + b u`` (true a = 0.9, b = 1)."""
+
+    def __init__(self, a=0.9, b=1.0):
+        super().__init__()
+        self.a = nn.Parameter(torch.tensor(float(a), dtype=DTYPE))
+        self.b = nn.Parameter(torch.tensor(float(b), dtype=DTYPE))
+
+    def forward(self, x, u):
+        return self.a * x + self.b * u
+
+
+class Paper41G(nn.Module):
+    """The paper's §4.1 observation ``g = c cos(x)`` (true c = 1)."""
+
+    def __init__(self, c=1.0):
+        super().__init__()
+        self.c = nn.Parameter(torch.tensor(float(c), dtype=DTYPE))
+
+    def forward(self, x, u):
+        return self.c * torch.cos(x)
+
+
+def _t(a) -> torch.Tensor:
+    return torch.as_tensor(a, dtype=DTYPE)
+
+
+def nonlinear_model(dof: float = 3.0) -> StateSpaceModel:
+    """2 states, 2 outputs, 1 input; full ``Rw`` and ``Rv``."""
+    return StateSpaceModel(
+        f=NonlinearF(),
+        g=CosineG(),
+        Rw=_t([[0.1, 0.04], [0.04, 0.2]]),
+        Rv=_t([[0.1, 0.03], [0.03, 0.2]]),
+        dof=_t(dof),
+        x0_mean=_t([0.0, 0.5]),
+        x0_cov=_t([[1.0, 0.2], [0.2, 0.5]]),
+    )
+
+
+def paper_model(dof: float = 3.0) -> StateSpaceModel:
+    """The paper's §4.1 system: ``x+ = 0.9 x + u + w``, ``y = cos x + v``, variances 0.1."""
+    return StateSpaceModel(
+        Paper41F(), Paper41G(), _t([[0.1]]), _t([[0.1]]), _t(dof), _t([0.0]), _t([[1.0]])
+    )
+
+
+def simulate(model: StateSpaceModel, lengths, rng: np.random.Generator, outlier_rate: float = 0.0):
+    """Lists of inputs ``(T_b, 1)`` and outputs ``(T_b, p)`` of ``model`` (Gaussian noise of
+    covariances ``Rw``, ``Rv``), with a fraction of the outputs replaced by 5.0 (outliers)."""
+    nx = model.state_dim
+    Cw = torch.linalg.cholesky(model.Rw)
+    Cv = torch.linalg.cholesky(model.Rv)
+    us, ys = [], []
+    with torch.no_grad():
+        for n in lengths:
+            x = model.x0_mean + torch.linalg.cholesky(model.x0_cov) @ _t(rng.normal(size=nx))
+            u = _t(rng.normal(size=(n, 1)))
+            y = []
+            for k in range(n):
+                y.append(model.g(x, u[k]) + Cv @ _t(rng.normal(size=Cv.shape[0])))
+                x = model.f(x, u[k]) + Cw @ _t(rng.normal(size=nx))
+            y = torch.stack(y)
+            y[_t(rng.random(n)) < outlier_rate] = 5.0
+            us.append(u)
+            ys.append(y)
+    return us, ys
+
+
+def simulate_t_outputs(R, dof: float, T: int, B: int, rng: np.random.Generator):
+    """Known "states" ``x`` (T, B, p) and ``y = x + v`` with ``v ~ St(0, R, dof)`` (numpy)."""
+    R = np.asarray(R, dtype=np.float64)
+    p = R.shape[0]
+    x = rng.normal(size=(T, B, p))
+    v = rng.multivariate_normal(np.zeros(p), R, size=(T, B))
+    if not math.isinf(dof):
+        lam = rng.gamma(0.5 * dof, 2.0 / dof, size=(T, B, 1))
+        v = v / np.sqrt(lam)
+    return x, x + v
+
+
+@dataclass
+class LinearSystem:
+    """The 2-state, 2-output, 1-input linear-Gaussian test system (full ``Q`` and ``R``)."""
+
+    A: np.ndarray
+    B: np.ndarray
+    C: np.ndarray
+    D: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    m0: np.ndarray
+    P0: np.ndarray
+
+    def model(self, dof: float = math.inf) -> StateSpaceModel:
+        t = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
+        return StateSpaceModel(
+            f=LinearF(self.A, self.B),
+            g=LinearG(self.C, self.D),
+            Rw=t(self.Q),
+            Rv=t(self.R),
+            dof=torch.tensor(dof, dtype=DTYPE),
+            x0_mean=t(self.m0),
+            x0_cov=t(self.P0),
+        )
+
+    def matrices(self):
+        return self.A, self.B, self.C, self.D, self.Q, self.R, self.m0, self.P0
+
+
+def make_linear_system() -> LinearSystem:
+    return LinearSystem(
+        A=np.array([[0.8, 0.2], [-0.1, 0.7]]),
+        B=np.array([[1.0], [0.5]]),
+        C=np.array([[1.0, 0.0], [0.5, 1.0]]),
+        D=np.array([[0.1], [0.0]]),
+        Q=np.array([[0.10, 0.03], [0.03, 0.05]]),
+        R=np.array([[0.20, 0.05], [0.05, 0.10]]),
+        m0=np.array([0.5, -0.3]),
+        P0=np.array([[0.5, 0.1], [0.1, 0.3]]),
+    )
+
+
+@pytest.fixture(scope="session")
+def linear_system() -> LinearSystem:
+    return make_linear_system()
+
+
+def replicate(u: np.ndarray, y: np.ndarray, n_copies: int) -> SequenceBatch:
+    """A batch of ``n_copies`` identical sequences (independent particle runs of one record)."""
+    ut = torch.as_tensor(u, dtype=DTYPE)
+    yt = torch.as_tensor(y, dtype=DTYPE)
+    return SequenceBatch.from_sequences([ut] * n_copies, [yt] * n_copies)
+
+
+def generator(seed: int) -> torch.Generator:
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
