@@ -78,12 +78,36 @@ def observation_log_density(
         ``log p(y_k | x)`` and ``delta2``, both ``(B, L)``; zero where ``y_k`` is missing.
     """
     B = data.n_sequences
-    resid = data.y[k].unsqueeze(-2) - model.observation(x, data.u[k])
-    z = torch.einsum("bij,blj->bli", scale.chol_inv[k], torch.where(scale.mask[k].unsqueeze(-2), resid, 0.0))
-    delta2 = (z * z).sum(-1)
+    delta2 = _mahalanobis(model, data, scale, k, x)
     dof = model.per_sequence("dof", B).unsqueeze(-1)
     logp = student_t_log_prob(delta2, scale.logdet[k].unsqueeze(-1), scale.n_obs[k].unsqueeze(-1), dof)
     return logp, delta2
+
+
+def _mahalanobis(
+    model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor
+) -> Tensor:
+    """Squared whitened residual norms ``delta2`` of ``y_k`` for particles ``x`` (B, L, nx)."""
+    resid = data.y[k].unsqueeze(-2) - model.observation(x, data.u[k])
+    resid = torch.where(scale.mask[k].unsqueeze(-2), resid, 0.0)
+    if resid.shape[-1] == 1:
+        z = resid * scale.chol_inv[k].unsqueeze(-2)[..., 0]
+    else:
+        z = torch.einsum("bij,blj->bli", scale.chol_inv[k], resid)
+    return (z * z).sum(-1)
+
+
+def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Per-(T, B) terms of the log-density, ``logp = const - coef * log1p(delta2 / nu)`` for a t,
+    ``const - delta2 / 2`` for a Gaussian (signalled by ``nu = inf``): computed once, not per step."""
+    dof = model.per_sequence("dof", B).unsqueeze(0)  # (1, B)
+    n, logdet = scale.n_obs, scale.logdet
+    if bool(torch.isinf(dof).all()):
+        const = -0.5 * (n * math.log(2.0 * math.pi) + logdet)
+        return const, torch.full_like(const, 0.5), dof.expand_as(const)
+    zero = torch.zeros_like(logdet)
+    const = student_t_log_prob(zero, logdet, n, dof)
+    return const, 0.5 * (dof + n), dof.expand_as(const)
 
 
 def _sample_initial(model: StateSpaceModel, B: int, L: int, generator) -> Tensor:
@@ -137,32 +161,41 @@ def particle_filter(
     nx = x.shape[-1]
     particles = torch.empty(T, B, L, nx, dtype=x.dtype, device=x.device)
     log_weights = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
-    ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
     ancestors = torch.empty(T, B, L, dtype=torch.long, device=x.device)
     log_lik = torch.zeros(B, dtype=x.dtype, device=x.device)
     log_w = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
     arange = torch.arange(L, device=x.device).expand(B, L)
     ancestors[0] = arange
+    const, coef, nu = _log_density_terms(model, scale, B)
+    gaussian = bool(torch.isinf(nu).all())
+    always = ess_threshold >= 1.0
+    log_uniform = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
+    Cw_t = Cw.transpose(-1, -2)
     for k in range(T):
         if k > 0:
-            if ess_threshold >= 1.0:
-                do = torch.ones(B, dtype=torch.bool, device=x.device)
+            if always:
+                anc = resample(log_w, generator=generator)
+                log_w = log_uniform
             else:
-                do = effective_sample_size(log_w) < ess_threshold * L  # (B,)
-            anc = torch.where(do.unsqueeze(-1), resample(log_w, generator=generator), arange)
+                do = (effective_sample_size(log_w) < ess_threshold * L).unsqueeze(-1)  # (B, 1)
+                anc = torch.where(do, resample(log_w, generator=generator), arange)
+                log_w = torch.where(do, log_uniform, log_w)
             ancestors[k] = anc
             x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))
-            log_w = torch.where(do.unsqueeze(-1), torch.full_like(log_w, -math.log(L)), log_w)
             noise = torch.randn(B, L, nx, dtype=x.dtype, device=x.device, generator=generator)
-            x = model.transition(x, data.u[k - 1]) + noise @ Cw.transpose(-1, -2)
-        logp, _ = observation_log_density(model, data, scale, k, x)
+            x = model.transition(x, data.u[k - 1]) + noise @ Cw_t
+        delta2 = _mahalanobis(model, data, scale, k, x)
+        if gaussian:
+            logp = const[k].unsqueeze(-1) - 0.5 * delta2
+        else:
+            logp = const[k].unsqueeze(-1) - coef[k].unsqueeze(-1) * torch.log1p(delta2 / nu[k].unsqueeze(-1))
         logits = log_w + logp
         lse = torch.logsumexp(logits, dim=-1)
         log_lik = log_lik + lse
         log_w = logits - lse.unsqueeze(-1)
         particles[k] = x
         log_weights[k] = log_w
-        ess[k] = effective_sample_size(log_w)
+    ess = effective_sample_size(log_weights)
     if not torch.isfinite(log_lik).all():
         bad = (~torch.isfinite(log_weights).any(-1)) | (~torch.isfinite(particles).all(-1).all(-1))
         steps = torch.nonzero(bad.any(-1)).flatten().tolist()

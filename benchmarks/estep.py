@@ -1,0 +1,182 @@
+"""E-step and EM-iteration benchmark: torch_nssm's smoothers against the peers, one table.
+
+Every measurement runs in its own subprocess (so that peak memory is that configuration's own,
+read as the growth of the resident set over the process's state after imports), on the same data
+(the paper's Section 4.1 model, ``peers.simulate_41``, Gaussian measurement noise so that every
+library computes the same thing), with one torch thread (NOTES §7: with many small per-step
+kernels two threads on two cores are slower; measured here in the table's ``threads`` column when
+``--threads 2`` is given).
+
+    python benchmarks/estep.py                 # N = 500, L in {100, 300, 1000}   (~5 min)
+    python benchmarks/estep.py --full          # N in {500, 2000}, L up to 3000   (long)
+    python benchmarks/estep.py --ours-only     # torch_nssm only (no peer packages needed)
+
+The peers are the optional ``bench`` extra (see README_peers.md for the install command).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+OURS = ("ffbsm", "ffbsi", "mcmc")
+PEERS = ("particles-ON2", "particles-mcmc", "particles-reject", "pyParticleEst-full")
+
+
+def _rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
+    sys.path.insert(0, HERE)
+    import numpy as np
+    import peers
+
+    data = peers.simulate_41(N=N, seed=seed)
+    u, y = data["u"], data["y"]
+    if impl in OURS:
+        import torch
+
+        from torch_nssm.em import MStepOptions, e_step, m_step
+        from torch_nssm.model import SequenceBatch, StateSpaceModel
+        from torch_nssm.models import PaperObservation, PaperTransition
+        from torch_nssm.smoothing import smoothed_moments
+
+        torch.set_num_threads(threads)
+        t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+        batch = SequenceBatch.from_sequences(
+            [t(u).reshape(-1, 1)], [t(y).reshape(-1, 1)]
+        )
+
+        def model():
+            return StateSpaceModel(
+                PaperTransition(0.9, 1.0), PaperObservation(1.0), t([[0.1]]), t([[0.1]]),
+                t(float("inf")), t([0.0]), t([[1.0]]),
+            )
+
+        gen = torch.Generator().manual_seed(seed)
+        e_step(model(), batch, 50, smoother=impl, generator=gen)  # warm-up (lazy imports)
+        gen.manual_seed(seed)  # the same filter particles for every smoother
+        base = _rss_mb()
+        t0 = time.perf_counter()
+        est = e_step(model(), batch, L, smoother=impl, generator=gen)
+        t_e = time.perf_counter() - t0
+        peak = _rss_mb() - base
+        m = model()
+        t0 = time.perf_counter()
+        m_step(m, batch, est, MStepOptions(fit_dof=False))
+        t_m = time.perf_counter() - t0
+        mean, _ = smoothed_moments(est.filter.particles, est.smoother.log_weights)
+        return {
+            "impl": f"torch_nssm-{impl}", "N": N, "L": L, "estep_s": t_e, "iter_s": t_e + t_m,
+            "peak_mb": peak, "smoothed_mean": mean[:, 0, 0].numpy().tolist(),
+        }
+    runner = {
+        "particles-ON2": peers.particles_ffbs_on2,
+        "particles-mcmc": peers.particles_ffbs_mcmc,
+        "particles-reject": peers.particles_ffbs_reject,
+        "pyParticleEst-full": peers.pyparticleest_full,
+    }[impl]
+    base = _rss_mb()
+    r = runner(u, y, L=L, seed=seed, measure_memory=False)
+    return {
+        "impl": impl, "N": N, "L": L, "estep_s": r["seconds_total"], "iter_s": float("nan"),
+        "peak_mb": _rss_mb() - base, "smoothed_mean": np.asarray(r["smoothed_mean"]).tolist(),
+    }
+
+
+def _run(impl: str, N: int, L: int, seed: int, threads: int, timeout: float) -> dict | None:
+    cmd = [sys.executable, __file__, "--worker", impl, str(N), str(L), str(seed), str(threads)]
+    try:
+        out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=True)
+    except subprocess.TimeoutExpired:
+        print(f"  {impl} N={N} L={L}: over {timeout:.0f} s, skipped", file=sys.stderr)
+        return None
+    except subprocess.CalledProcessError as exc:
+        print(f"  {impl} N={N} L={L} failed: {exc.stderr.strip().splitlines()[-1:]}", file=sys.stderr)
+        return None
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    p.add_argument("--full", action="store_true", help="N in {500, 2000}, L in {100, 300, 1000, 3000}")
+    p.add_argument("--N", type=int, nargs="*", default=None)
+    p.add_argument("--L", type=int, nargs="*", default=None)
+    p.add_argument("--ours-only", action="store_true")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--timeout", type=float, default=900.0, help="seconds per measurement")
+    p.add_argument("--json", help="also write the raw results here")
+    a = p.parse_args(argv)
+    if a.worker:
+        impl, N, L, seed, threads = a.worker
+        print(json.dumps(_worker(impl, int(N), int(L), int(seed), int(threads))))
+        return 0
+    Ns = a.N or ([500, 2000] if a.full else [500])
+    Ls = a.L or ([100, 300, 1000, 3000] if a.full else [100, 300, 1000])
+    impls = list(OURS) + ([] if a.ours_only else list(PEERS))
+    results = []
+    for N in Ns:
+        for L in Ls:
+            for impl in impls:
+                r = _run(impl, N, L, a.seed, a.threads, a.timeout)
+                if r is not None:
+                    results.append(r)
+                    print(f"  {r['impl']:>22} N={N:5d} L={L:5d}  E-step {r['estep_s']:8.3f} s", file=sys.stderr)
+    if a.json:
+        with open(a.json, "w") as fh:
+            json.dump(results, fh)
+    _table(results, Ns, Ls, a.threads)
+    return 0
+
+
+def _table(results: list[dict], Ns, Ls, threads: int) -> None:
+    import numpy as np
+
+    by = {(r["impl"], r["N"], r["L"]): r for r in results}
+    print(f"\nE-step (filter + smoother) seconds, Section 4.1 model, Gaussian noise, torch threads={threads}")
+    print("| N | L | implementation | E-step s | EM iter s | peak MB | RMS vs our FFBSm | ours faster by |")
+    print("|---|---|---|---|---|---|---|---|")
+    pair = {
+        "particles-ON2": "torch_nssm-ffbsm",
+        "pyParticleEst-full": "torch_nssm-ffbsm",
+        "particles-reject": "torch_nssm-ffbsi",
+        "particles-mcmc": "torch_nssm-mcmc",
+    }
+    for N in Ns:
+        for L in Ls:
+            ref = by.get(("torch_nssm-ffbsm", N, L))
+            for impl in [f"torch_nssm-{o}" for o in OURS] + list(PEERS):
+                r = by.get((impl, N, L))
+                if r is None:
+                    continue
+                rms = (
+                    float(np.sqrt(np.mean((np.array(r["smoothed_mean"]) - ref["smoothed_mean"]) ** 2)))
+                    if ref
+                    else float("nan")
+                )
+                ours = by.get((pair.get(impl, ""), N, L))
+                ratio = f"{r['estep_s'] / ours['estep_s']:.1f}x ({pair[impl][11:]})" if ours else ""
+                it = "" if np.isnan(r["iter_s"]) else f"{r['iter_s']:.3f}"
+                print(
+                    f"| {N} | {L} | {impl} | {r['estep_s']:.3f} | {it} | {r['peak_mb']:.0f} | "
+                    f"{rms:.3f} | {ratio} |"
+                )
+    for o in ("ffbsi", "mcmc"):
+        for N in Ns:
+            a, b = by.get((f"torch_nssm-{o}", N, 300)), by.get((f"torch_nssm-{o}", N, 3000))
+            if a and b:
+                k = np.log(b["estep_s"] / a["estep_s"]) / np.log(10.0)
+                print(f"\ntorch_nssm-{o}, N={N}: E-step time grows as L^{k:.2f} from L=300 to L=3000")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
