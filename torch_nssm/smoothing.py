@@ -126,11 +126,11 @@ def ffbsm(
         s = torch.zeros(B, L, dtype=X.dtype, device=X.device)
         m = torch.zeros(B, L, nx, dtype=X.dtype, device=X.device)
         for sl in _chunks(L, chunk_size):
-            logits = a.unsqueeze(-1) + zf @ zx[:, sl].transpose(-1, -2)  # (B, L_i, J)
-            K = torch.softmax(logits, dim=1)
-            wj = w_next[:, sl]
-            s = s + (K @ wj.unsqueeze(-1)).squeeze(-1)
-            m = m + K @ (wj.unsqueeze(-1) * x_next[:, sl])
+            # (B, J, L_i): the softmax runs over the contiguous last dimension (i)
+            K = torch.softmax(torch.baddbmm(a.unsqueeze(1), zx[:, sl], zf.transpose(-1, -2)), dim=-1)
+            wj = w_next[:, sl].unsqueeze(1)  # (B, 1, J)
+            s = s + (wj @ K).squeeze(1)
+            m = m + K.transpose(-1, -2) @ (wj.transpose(-1, -2) * x_next[:, sl])
         valid = trans[k]  # (B,)
         pos = s > 0
         xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[k])
