@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numbers
-from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -17,6 +16,7 @@ __all__ = [
     "check_positive",
     "check_choice",
     "check_device",
+    "check_dtype",
     "check_module_shapes",
 ]
 
@@ -24,11 +24,28 @@ __all__ = [
 def _to_tensor(value, name: str, dtype: torch.dtype, device: torch.device) -> Tensor:
     if isinstance(value, Tensor):
         t = value.detach()
+        if t.is_complex():
+            raise ValueError(f"{name}: Complex data not supported")
+        if t.layout != torch.strided:
+            raise TypeError(f"{name}: sparse input is not supported, pass a dense tensor")
     else:
+        if hasattr(value, "tocsr") or hasattr(value, "todense"):  # scipy.sparse
+            raise TypeError(f"{name}: sparse input is not supported, pass a dense array")
         try:
-            arr = np.asarray(value, dtype=np.float64)
+            arr = np.asarray(value)
+            if np.iscomplexobj(arr):
+                raise ValueError(f"{name}: Complex data not supported")
+            arr = np.array(arr, dtype=np.float64)  # a copy: read-only inputs stay untouched
         except (TypeError, ValueError) as exc:
-            raise TypeError(f"{name} must be array-like of numbers, got {type(value).__name__}") from exc
+            if "Complex data" in str(exc):
+                raise
+            hint = ""
+            if isinstance(value, (list, tuple)):
+                hint = "; several records of different lengths go in a list of numpy arrays"
+            raise TypeError(
+                f"{name} must be array-like of real numbers, got {type(value).__name__} "
+                f"({exc}){hint}"
+            ) from exc
         t = torch.from_numpy(arr)
     if not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64, torch.bool)):
         raise TypeError(f"{name} must hold real numbers, got dtype {t.dtype}")
@@ -40,14 +57,25 @@ def _as_2d(t: Tensor, name: str) -> Tensor:
         return t.unsqueeze(-1)
     if t.dim() == 2:
         return t
-    raise ValueError(f"{name} must be 1-D (n_samples,) or 2-D (n_samples, n_features), got shape {tuple(t.shape)}")
+    raise ValueError(
+        f"{name} must be 1-D (n_samples,) or 2-D (n_samples, n_columns), got shape {tuple(t.shape)}"
+    )
+
+
+def _is_array(value) -> bool:
+    """An array object (ndarray, tensor, pandas object...), not a number or a nested list."""
+    if isinstance(value, (np.ndarray, Tensor)):
+        return True
+    return hasattr(value, "__array__") and not isinstance(value, numbers.Number)
 
 
 def is_sequence_list(value) -> bool:
-    return isinstance(value, (list, tuple)) and len(value) > 0 and all(
-        isinstance(v, (np.ndarray, Tensor)) or (isinstance(v, Sequence) and not isinstance(v, str))
-        for v in value
-    ) and not all(isinstance(v, numbers.Number) for v in value)
+    """True for several records: a non-empty list or tuple of arrays (or tensors).
+
+    A list of numbers or of Python lists is *one* record (its rows), as in scikit-learn; several
+    records of possibly different lengths are passed as a list of numpy arrays or tensors.
+    """
+    return isinstance(value, (list, tuple)) and len(value) > 0 and all(_is_array(v) for v in value)
 
 
 def as_sequence_list(
@@ -59,20 +87,34 @@ def as_sequence_list(
     n_inputs: int | None = None,
     n_outputs: int | None = None,
     require_y: bool = True,
-) -> tuple[list[Tensor], list[Tensor] | None]:
+) -> tuple[list[Tensor], list[Tensor] | None, bool]:
     """Validate ``u`` and ``y`` (one record, or lists of records) and convert them to 2-D tensors.
 
     ``u=None`` means a system without input (``nu = 0``).  NaN in ``y`` marks a missing output;
     NaN or infinity in ``u`` is an error.
 
+    Parameters
+    ----------
+    u, y : array-like, list of array-like, or None
+        One record (``(N,)`` or ``(N, n)``) or a list of records (see :func:`is_sequence_list`).
+    dtype, device
+        Of the tensors returned.
+    n_inputs, n_outputs : int, optional
+        Expected numbers of columns (those of the data a model was fitted on).
+    require_y : bool, default=True
+        Raise if ``y`` is None.
+
     Returns
     -------
-    (list of Tensor, list of Tensor or None)
-        Inputs ``(T_b, nu)`` and outputs ``(T_b, p)`` of each record.
+    (list of Tensor, list of Tensor or None, bool)
+        Inputs ``(T_b, nu)`` and outputs ``(T_b, p)`` of each record, and whether several records
+        were given (a list) rather than one.
     """
-    multi = is_sequence_list(y) if y is not None else is_sequence_list(u)
     if y is None and require_y:
-        raise ValueError("y is required")
+        raise ValueError(
+            "y is required: this estimator requires y to be passed, but the target y is None"
+        )
+    multi = is_sequence_list(y) if y is not None else is_sequence_list(u)
     if multi:
         ys = list(y) if y is not None else None
         n_seq = len(ys) if ys is not None else len(u)
@@ -81,10 +123,16 @@ def as_sequence_list(
         elif is_sequence_list(u):
             us = list(u)
             if len(us) != n_seq:
-                raise ValueError(f"u and y must hold the same number of sequences, got {len(us)} and {n_seq}")
+                raise ValueError(
+                    f"u and y must hold the same number of records, got {len(us)} and {n_seq}"
+                )
         else:
-            raise ValueError("y is a list of sequences, so u must be a list of the same length (or None)")
+            raise ValueError(
+                "y is a list of records, so u must be a list of as many arrays (or None)"
+            )
     else:
+        if y is not None and is_sequence_list(u):
+            raise ValueError("u is a list of records, so y must be a list of as many arrays")
         us, ys = [u], ([y] if y is not None else None)
     out_u, out_y = [], ([] if ys is not None else None)
     for b in range(len(us)):
@@ -93,32 +141,57 @@ def as_sequence_list(
         if ys is not None:
             yb = _as_2d(_to_tensor(ys[b], f"y{tag}", dtype, device), f"y{tag}")
             if yb.shape[0] < 2:
-                raise ValueError(f"y{tag} must have at least 2 samples, got {yb.shape[0]}")
+                raise ValueError(
+                    f"y{tag} must have at least 2 samples, got {yb.shape[0]} sample(s)"
+                )
             if torch.isinf(yb).any():
                 raise ValueError(f"y{tag} contains infinite values (use NaN for missing outputs)")
             if torch.isnan(yb).all():
                 raise ValueError(f"y{tag} is all missing (NaN): nothing to fit")
             if n_outputs is not None and yb.shape[1] != n_outputs:
-                raise ValueError(f"y{tag} has {yb.shape[1]} output columns, expected {n_outputs}")
+                raise ValueError(
+                    f"y{tag} has {yb.shape[1]} output columns, expected {n_outputs} "
+                    "(the model's number of outputs)"
+                )
         if us[b] is None:
             if n_inputs not in (None, 0):
-                raise ValueError(f"u is required: the model was fitted with {n_inputs} input columns")
+                raise ValueError(
+                    f"u is required: the model was fitted with {n_inputs} input columns"
+                )
             if yb is None:
-                raise ValueError("u is required when y is not given")
+                raise ValueError(
+                    "u is required when y is not given (for a model without input pass "
+                    "u of shape (n_samples, 0))"
+                )
             ub = torch.zeros(yb.shape[0], 0, dtype=dtype, device=device)
         else:
-            ub = _as_2d(_to_tensor(us[b], f"u{tag}", dtype, device), f"u{tag}")
+            raw = _to_tensor(us[b], f"u{tag}", dtype, device)
+            ub = _as_2d(raw, f"u{tag}")
+            if ub.shape[0] == 0:
+                raise ValueError(f"u{tag} is empty: it must have at least 1 sample")
             if not torch.isfinite(ub).all():
                 bad = int(torch.nonzero(~torch.isfinite(ub).all(-1))[0])
-                raise ValueError(f"u{tag} contains NaN or infinite values (first at sample {bad})")
+                raise ValueError(
+                    f"u{tag} contains NaN or infinite values (first at sample {bad}); "
+                    "inputs cannot be missing"
+                )
             if n_inputs is not None and ub.shape[1] != n_inputs:
-                raise ValueError(f"u{tag} has {ub.shape[1]} input columns, expected {n_inputs}")
+                hint = ""
+                if raw.dim() == 1:
+                    hint = (f"; a 1-D u is one input column: Reshape your data to "
+                            f"(n_samples, {n_inputs})")
+                raise ValueError(
+                    f"u{tag} has {ub.shape[1]} input columns, expected {n_inputs} "
+                    f"(the model's number of inputs){hint}"
+                )
         if yb is not None and ub.shape[0] != yb.shape[0]:
-            raise ValueError(f"u{tag} and y{tag} must have the same length, got {ub.shape[0]} and {yb.shape[0]}")
+            raise ValueError(
+                f"u{tag} and y{tag} must have the same length, got {ub.shape[0]} and {yb.shape[0]}"
+            )
         out_u.append(ub)
         if out_y is not None:
             out_y.append(yb)
-    return out_u, out_y
+    return out_u, out_y, multi
 
 
 def check_vector(value, name: str, dim: int | None, *, dtype, device) -> Tensor:
@@ -138,7 +211,9 @@ def check_covariance(value, name: str, dim: int, *, dtype, device) -> Tensor:
         t = t.reshape(()) * torch.eye(dim, dtype=dtype, device=device)
     elif t.dim() == 1:
         if t.numel() != dim:
-            raise ValueError(f"{name} as a vector is a diagonal and must have {dim} entries, got {t.numel()}")
+            raise ValueError(
+                f"{name} as a vector is a diagonal and must have {dim} entries, got {t.numel()}"
+            )
         t = torch.diag(t)
     if t.shape != (dim, dim):
         raise ValueError(f"{name} must be a ({dim}, {dim}) matrix, got shape {tuple(t.shape)}")
@@ -146,18 +221,23 @@ def check_covariance(value, name: str, dim: int, *, dtype, device) -> Tensor:
         raise ValueError(f"{name} must be finite")
     if not torch.allclose(t, t.T, rtol=1e-8, atol=1e-12):
         raise ValueError(f"{name} must be symmetric")
-    if torch.linalg.eigvalsh(t).min() <= 0:
-        raise ValueError(f"{name} must be positive definite, its eigenvalues are {torch.linalg.eigvalsh(t).tolist()}")
+    eig = torch.linalg.eigvalsh(t)
+    if eig.min() <= 0:
+        raise ValueError(f"{name} must be positive definite, its eigenvalues are {eig.tolist()}")
     return t
 
 
-def check_positive(value, name: str, *, integer: bool = False, minimum: float = 0.0, inclusive=False):
+def check_positive(
+    value, name: str, *, integer: bool = False, minimum: float = 0.0, inclusive: bool = False
+):
     """A real (or integer) number ``> minimum`` (``>=`` when ``inclusive``)."""
     kind = numbers.Integral if integer else numbers.Real
     if isinstance(value, bool) or not isinstance(value, kind):
-        raise TypeError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
+        raise TypeError(
+            f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}"
+        )
     ok = value >= minimum if inclusive else value > minimum
-    if not ok or (not integer and not np.isfinite(value) and not np.isinf(value)):
+    if not ok or (not integer and np.isnan(value)):
         op = ">=" if inclusive else ">"
         raise ValueError(f"{name} must be {op} {minimum}, got {value!r}")
     return value
@@ -168,6 +248,13 @@ def check_choice(value, name: str, choices) -> str:
     if value not in choices:
         raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
     return value
+
+
+def check_dtype(dtype) -> torch.dtype:
+    """``torch.float32`` or ``torch.float64``."""
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    return dtype
 
 
 def check_device(device) -> torch.device:
@@ -181,30 +268,43 @@ def check_device(device) -> torch.device:
     if dev.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {device!r} is not available on this machine")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise ValueError(f"device {device!r} is not available: {torch.cuda.device_count()} CUDA device(s)")
+        raise ValueError(
+            f"device {device!r} is not available: {torch.cuda.device_count()} CUDA device(s)"
+        )
     return dev
 
 
-def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *, dtype, device) -> None:
+def check_module_shapes(
+    f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *, dtype, device
+) -> None:
     """Call ``f`` and ``g`` once on a small batch and check their output shapes."""
     for name, module in (("f", f), ("g", g)):
         if not isinstance(module, nn.Module):
-            raise TypeError(f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(module).__name__}")
+            raise TypeError(
+                f"{name} must be a torch.nn.Module called as {name}(x, u), "
+                f"got {type(module).__name__}"
+            )
     x = torch.zeros(3, nx, dtype=dtype, device=device)
     u = torch.zeros(3, nu, dtype=dtype, device=device)
-    for name, module, want, what in (("f", f, nx, "the state dimension len(x0_mean)"), ("g", g, p, "the number of outputs (columns of y)")):
+    checks = (
+        ("f", f, nx, "the state dimension len(x0_mean)"),
+        ("g", g, p, "the number of outputs (columns of y)"),
+    )
+    for name, module, want, what in checks:
         try:
             with torch.no_grad():
                 out = module(x, u)
         except Exception as exc:  # a user module can fail in any way: say where
             raise ValueError(
-                f"{name}(x, u) failed on x of shape {tuple(x.shape)} and u of shape {tuple(u.shape)} "
+                f"{name}(x, u) failed on x of shape {tuple(x.shape)} and u of shape "
+                f"{tuple(u.shape)} "
                 f"({type(exc).__name__}: {exc}); check that nx = len(x0_mean) = {nx} and nu = {nu} "
                 "match the module"
             ) from exc
         if not isinstance(out, Tensor) or tuple(out.shape) != (3, want):
             shape = tuple(out.shape) if isinstance(out, Tensor) else type(out).__name__
             raise ValueError(
-                f"{name}(x, u) must return shape (..., {want}) ({what}) for x of shape (..., {nx}); "
+                f"{name}(x, u) must return shape (..., {want}) ({what}) for x of shape "
+                f"(..., {nx}) (nx = len(x0_mean)) and u of shape (..., {nu}); "
                 f"got {shape} for x of shape (3, {nx})"
             )

@@ -61,13 +61,19 @@ class StateEstimate:
             return self.mean[None] + z[:, None, None] * self.std[None]
         order = np.argsort(self.particles, axis=1)  # (N, L, nx)
         xs = np.take_along_axis(self.particles, order, axis=1)
-        ws = np.take_along_axis(np.broadcast_to(self.weights[..., None], self.particles.shape), order, axis=1)
-        cdf = np.cumsum(ws, axis=1) - 0.5 * ws
+        w = np.broadcast_to(self.weights[..., None], self.particles.shape)
+        ws = np.take_along_axis(w, order, axis=1)
+        cdf = np.cumsum(ws, axis=1) - 0.5 * ws  # mid-point rule, as np.interp on each (k, d)
+        last = xs.shape[1] - 1
         out = np.empty((len(q),) + self.mean.shape)
-        N, _, nx = self.particles.shape
-        for k in range(N):  # per time step: np.interp is 1-D; cheap next to the filter itself
-            for d in range(nx):
-                out[:, k, d] = np.interp(q, cdf[k, :, d], xs[k, :, d])
+        for i, qi in enumerate(q):
+            j = (cdf <= qi).sum(axis=1, keepdims=True)  # first point with cdf > q
+            lo, hi = np.clip(j - 1, 0, last), np.clip(j, 0, last)
+            c_lo, c_hi = np.take_along_axis(cdf, lo, 1), np.take_along_axis(cdf, hi, 1)
+            x_lo, x_hi = np.take_along_axis(xs, lo, 1), np.take_along_axis(xs, hi, 1)
+            gap = c_hi - c_lo
+            frac = np.clip((qi - c_lo) / np.where(gap > 0, gap, 1.0), 0.0, 1.0)
+            out[i] = (x_lo + np.where(gap > 0, frac, 0.0) * (x_hi - x_lo))[:, 0]
         return out
 
     def interval(self, level: float = 0.9) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,147 @@
+"""``torch_nssm.plotting``: each function draws what it says, on the Axes it is given."""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+import torch
+from matplotlib.collections import PathCollection, PolyCollection
+from sklearn.exceptions import NotFittedError
+
+from torch_nssm import RobustNSSMEstimator
+from torch_nssm.datasets import make_paper_example
+from torch_nssm.models import PaperObservation, PaperTransition
+from torch_nssm.plotting import plot_history, plot_outliers, plot_states
+
+plt.switch_backend("Agg")
+N = 120
+
+
+@pytest.fixture(scope="module")
+def fit():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    data = make_paper_example(n_samples=N, random_state=1)
+    est = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_particles=40,
+        n_iter=4, tol=0.0, random_state=0,
+    ).fit(data.u, data.y)
+    sm = est.smooth(data.u, data.y, return_particles=True)
+    torch.set_num_threads(n)
+    yield est, data, sm
+    plt.close("all")
+
+
+@pytest.fixture(autouse=True)
+def close_figures():
+    yield
+    plt.close("all")
+
+
+def test_plot_history_panels(fit):
+    est, data, _ = fit
+    axes = plot_history(est, true_values={"f.a": 0.9, "f.b": 1.0, "g.c": 1.0, "Rw": 0.1})
+    titles = [a.get_title() for a in axes]
+    assert titles == ["f.a", "f.b", "g.c", "Rw", "Rv", "dof"]
+    a = axes[0]
+    line, truth = a.get_lines()
+    np.testing.assert_allclose(line.get_ydata(), est.history_["f.a"])
+    np.testing.assert_allclose(line.get_xdata(), np.arange(5))
+    assert truth.get_linestyle() == "--" and truth.get_ydata()[0] == 0.9
+    assert truth.get_color() == line.get_color()
+    assert len(axes[4].get_lines()) == 1  # Rv: no true value given
+
+
+def test_plot_history_on_one_axes_and_a_dict(fit):
+    est, _, _ = fit
+    fig, ax = plt.subplots()
+    out = plot_history(est.history_, params=["g.c", "log_likelihood"], ax=ax)
+    assert out is ax
+    assert [ln.get_label() for ln in ax.get_lines()] == ["g.c", "log_likelihood"]
+    assert ax.get_legend() is not None
+    fig, axs = plt.subplots(1, 2)
+    out = plot_history(est, params=["f.a", "dof"], ax=axs)
+    assert list(out) == list(axs)
+
+
+def test_plot_history_matrix_entries():
+    history = {
+        "Rv": np.array([np.eye(2), 2 * np.eye(2), 3 * np.eye(2)]),
+        "f.A": np.arange(12.0).reshape(3, 2, 2),
+    }
+    fig, ax = plt.subplots()
+    plot_history(history, params=["Rv", "f.A"], ax=ax, true_values={"Rv": np.eye(2) * 2.5})
+    labels = [ln.get_label() for ln in ax.get_lines()]
+    assert labels == [
+        "Rv[0, 0]", "Rv[0, 0] (true)", "Rv[0, 1]", "Rv[0, 1] (true)", "Rv[1, 1]",
+        "Rv[1, 1] (true)", "f.A[0, 0]", "f.A[0, 1]", "f.A[1, 0]", "f.A[1, 1]",
+    ]
+
+
+def test_plot_history_errors(fit):
+    est, _, _ = fit
+    with pytest.raises(ValueError, match=r"params \['f.z'\] not in the history"):
+        plot_history(est, params=["f.z"])
+    with pytest.raises(ValueError, match="true_values has"):
+        plot_history(est, params=["f.a"], true_values={"g.c": 1.0})
+    with pytest.raises(NotFittedError):
+        plot_history(RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0]))
+
+
+def test_plot_outliers_colours_by_weight(fit):
+    est, data, _ = fit
+    fig, ax = plt.subplots()
+    out = plot_outliers(data.y, est.outlier_weights_, true_outliers=data.outlier_mask, ax=ax)
+    assert out is ax
+    points, circles = [c for c in ax.collections if isinstance(c, PathCollection)]
+    np.testing.assert_allclose(points.get_array(), np.clip(est.outlier_weights_, 0, 1))
+    np.testing.assert_allclose(points.get_offsets()[:, 1], data.y[:, 0])
+    assert len(circles.get_offsets()) == data.outlier_mask.sum()
+    assert len(fig.axes) == 2  # with a colour bar
+    # the flagged samples are drawn in the colour of a low weight
+    cmap = points.get_cmap()
+    colours = points.to_rgba(points.get_array())
+    low = np.argmin(est.outlier_weights_)
+    np.testing.assert_allclose(colours[low], cmap(float(np.clip(est.outlier_weights_[low], 0, 1))))
+
+
+def test_plot_outliers_missing_and_errors():
+    y = np.array([0.0, 1.0, np.nan, 2.0])
+    w = np.array([1.0, 0.1, np.nan, 1.2])
+    ax = plot_outliers(y, w)
+    pts = [c for c in ax.collections if isinstance(c, PathCollection)]
+    assert len(pts[0].get_offsets()) == 3  # the NaN weight drawn apart, in grey
+    with pytest.raises(ValueError, match="outlier_weights must have 4 entries"):
+        plot_outliers(y, w[:3])
+    with pytest.raises(ValueError, match="true_outliers must have 4 entries"):
+        plot_outliers(y, w, true_outliers=[True])
+
+
+def test_plot_states_band_and_truth(fit):
+    _, data, sm = fit
+    fig, ax = plt.subplots()
+    out = plot_states(sm, x_true=data.x, ax=ax, level=0.8)
+    assert out is ax
+    mean_line, true_line = ax.get_lines()
+    np.testing.assert_allclose(mean_line.get_ydata(), sm.mean[:, 0])
+    np.testing.assert_allclose(true_line.get_ydata(), data.x[:, 0])
+    bands = [c for c in ax.collections if isinstance(c, PolyCollection)]
+    assert len(bands) == 1
+    lo, hi = sm.interval(0.8)
+    ys = bands[0].get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(lo.min()) and ys.max() == pytest.approx(hi.max())
+
+
+def test_plot_states_options_and_errors(fit):
+    _, data, sm = fit
+    ax = plot_states(sm, level=0)
+    assert not [c for c in ax.collections if isinstance(c, PolyCollection)]
+    with pytest.raises(ValueError, match="components must lie in"):
+        plot_states(sm, components=[1])
+    with pytest.raises(ValueError, match="level must lie in"):
+        plot_states(sm, level=1.5)
+    with pytest.raises(TypeError, match="estimate must be a StateEstimate"):
+        plot_states(sm.mean)
+    with pytest.raises(ValueError, match="x_true must have shape"):
+        plot_states(sm, x_true=np.zeros((N, 2)))

@@ -1,0 +1,257 @@
+"""Plots of a fit: parameter trajectories, flagged outliers, smoothed states with bands.
+
+Each function draws on the ``ax`` it is given (or on a new figure) and returns its Axes, so plots
+compose with the rest of a matplotlib figure.  matplotlib is imported when a function is called.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from sklearn.exceptions import NotFittedError
+
+from .results import StateEstimate
+
+__all__ = ["plot_history", "plot_outliers", "plot_states"]
+
+#: Entries of ``history_`` that are covariance matrices: only their upper triangle is drawn.
+_SYMMETRIC = ("Rw", "Rv", "x0_cov")
+
+
+def _pyplot():
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _history(est) -> Mapping[str, np.ndarray]:
+    if isinstance(est, Mapping):
+        return est
+    history = getattr(est, "history_", None)
+    if history is None:
+        raise NotFittedError(
+            f"{type(est).__name__} has no history_: fit it first (or pass its history_ dict)"
+        )
+    return history
+
+
+def _default_params(history: Mapping[str, np.ndarray]) -> list[str]:
+    names = [k for k in history if k.startswith(("f.", "g."))]
+    names += [k for k in ("Rw", "Rv") if k in history]
+    if "dof" in history and np.all(np.isfinite(history["dof"])):
+        names.append("dof")
+    return names
+
+
+def _series(name: str, values: np.ndarray) -> list[tuple[str, tuple, np.ndarray]]:
+    """Split an ``(n_iter + 1, *shape)`` trajectory into labelled scalar series."""
+    values = np.asarray(values, dtype=float)
+    shape = values.shape[1:]
+    if shape == () or int(np.prod(shape)) == 1:
+        return [(name, (), values.reshape(len(values)))]
+    out = []
+    for idx in np.ndindex(*shape):
+        if name in _SYMMETRIC and len(idx) == 2 and idx[0] > idx[1]:
+            continue
+        label = f"{name}[{', '.join(str(i) for i in idx)}]"
+        out.append((label, idx, values[(slice(None),) + idx]))
+    return out
+
+
+def plot_history(est, params=None, true_values=None, ax=None):
+    """Parameter estimates over the EM iterations (the paper's Figs. 2 and 10).
+
+    Parameters
+    ----------
+    est : RobustNSSMEstimator or dict
+        A fitted estimator, or its ``history_``.
+    params : str or list of str, optional
+        Keys of ``history_`` to draw, e.g. ``["f.a", "g.c", "Rv", "dof", "log_likelihood"]``;
+        default: every parameter of ``f`` and ``g``, ``Rw``, ``Rv`` and ``dof`` (unless the noise
+        is Gaussian).  Vector and matrix entries give one line per element (the upper triangle
+        of ``Rw``, ``Rv``, ``x0_cov``).
+    true_values : dict, optional
+        ``{name: value}`` drawn as dashed horizontal lines in the colour of the estimate
+        (``value`` shaped like the entry, or a scalar).
+    ax : matplotlib Axes or sequence of Axes, optional
+        ``None``: a new figure with one panel per parameter.  One Axes: every trajectory on it
+        (with a legend).  A sequence of Axes: one per parameter.
+
+    Returns
+    -------
+    Axes or ndarray of Axes
+        The Axes drawn on: one Axes if one was given, else an array with one per parameter.
+    """
+    history = _history(est)
+    if params is None:
+        params = _default_params(history)
+    elif isinstance(params, str):
+        params = [params]
+    params = list(params)
+    unknown = [p for p in params if p not in history]
+    if unknown:
+        raise ValueError(f"params {unknown} not in the history; available: {sorted(history)}")
+    if not params:
+        raise ValueError("params is empty: nothing to plot")
+    true_values = dict(true_values or {})
+    bad = [k for k in true_values if k not in params]
+    if bad:
+        raise ValueError(
+            f"true_values has {bad}, which are not among the plotted params {params}"
+        )
+    single = ax is not None and not isinstance(ax, (Sequence, np.ndarray))
+    if ax is None:
+        plt = _pyplot()
+        ncols = min(3, len(params))
+        nrows = -(-len(params) // ncols)
+        fig, grid = plt.subplots(nrows, ncols, figsize=(4.0 * ncols, 2.8 * nrows), squeeze=False)
+        axes = grid.ravel()
+        for extra in axes[len(params):]:
+            fig.delaxes(extra)
+        axes = axes[: len(params)]
+    elif single:
+        axes = [ax] * len(params)
+    else:
+        axes = np.asarray(ax, dtype=object).ravel()
+        if len(axes) != len(params):
+            raise ValueError(f"ax holds {len(axes)} Axes for {len(params)} params")
+    for name, a in zip(params, axes):
+        truth = true_values.get(name)
+        for label, idx, values in _series(name, history[name]):
+            (line,) = a.plot(np.arange(len(values)), values, label=label)
+            if truth is not None:
+                t = np.asarray(truth, dtype=float)
+                t = t.reshape(()) if t.size == 1 else t[idx]
+                a.axhline(float(t), color=line.get_color(), linestyle="--", linewidth=1.0,
+                          label=f"{label} (true)")
+        a.set_xlabel("iteration")
+        if not single:
+            a.set_title(name)
+    if single:
+        ax.legend(fontsize="small")
+        return ax
+    return np.asarray(axes, dtype=object)
+
+
+def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYlGn", t=None):
+    """The outputs over time, coloured by their outlier weight ``E[lam_k | y]``.
+
+    A weight near 0 (red with the default colormap) flags an outlier, near 1 (green) a regular
+    sample; weights above 1 are drawn as 1, missing ones (NaN) in grey.
+
+    Parameters
+    ----------
+    y : array-like of shape (N,) or (N, p)
+        Measured outputs (NaN: missing, not drawn).
+    outlier_weights : array-like of shape (N,)
+        E.g. ``est.outlier_weights_`` or ``est.smooth(u, y).outlier_weights``.
+    true_outliers : array-like of bool, shape (N,), optional
+        Known outliers (simulations), circled in black.
+    ax : matplotlib Axes, optional
+        Drawn on a new figure if omitted.
+    cmap : str or Colormap, default="RdYlGn"
+    t : array-like of shape (N,), optional
+        Time axis (default: the sample index).
+
+    Returns
+    -------
+    Axes
+    """
+    y = np.asarray(y, dtype=float)
+    y = y.reshape(len(y), -1) if y.ndim <= 2 else None
+    if y is None:
+        raise ValueError("y must be 1-D (N,) or 2-D (N, p)")
+    w = np.asarray(outlier_weights, dtype=float).reshape(-1)
+    n = y.shape[0]
+    if w.shape[0] != n:
+        raise ValueError(f"outlier_weights must have {n} entries (one per sample), got {len(w)}")
+    xlabel = "sample k" if t is None else "time"
+    t = np.arange(n) if t is None else np.asarray(t, dtype=float).reshape(-1)
+    if t.shape[0] != n:
+        raise ValueError(f"t must have {n} entries, got {t.shape[0]}")
+    if ax is None:
+        _, ax = _pyplot().subplots(figsize=(8.0, 3.0))
+    scatter = None
+    for j in range(y.shape[1]):
+        ax.plot(t, y[:, j], color="0.8", linewidth=0.8, zorder=1)
+        ok = np.isfinite(w)
+        scatter = ax.scatter(t[ok], y[ok, j], c=np.clip(w[ok], 0.0, 1.0), cmap=cmap, vmin=0.0,
+                             vmax=1.0, s=14, zorder=2)
+        if (~ok).any():
+            ax.scatter(t[~ok], y[~ok, j], color="0.6", s=10, zorder=2)
+    if true_outliers is not None:
+        m = np.asarray(true_outliers, dtype=bool).reshape(-1)
+        if m.shape[0] != n:
+            raise ValueError(f"true_outliers must have {n} entries, got {m.shape[0]}")
+        for j in range(y.shape[1]):
+            ax.scatter(t[m], y[m, j], s=60, facecolors="none", edgecolors="k", linewidths=0.8,
+                       zorder=3, label="true outliers" if j == 0 else None)
+        ax.legend(fontsize="small", loc="best")
+    if scatter is not None:
+        ax.figure.colorbar(scatter, ax=ax, label="outlier weight E[λ | y]")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("y")
+    return ax
+
+
+def plot_states(estimate: StateEstimate, x_true=None, ax=None, level: float = 0.9, *,
+                components=None, t=None):
+    """Filtered or smoothed state means with a central credible band, against true states.
+
+    Parameters
+    ----------
+    estimate : StateEstimate
+        From ``est.smooth(u, y)`` or ``est.filter(u, y)`` (with ``return_particles=True`` the
+        band is from the weighted particles, otherwise Gaussian from the covariances).
+    x_true : array-like of shape (N,) or (N, nx), optional
+        Known states (simulations), drawn dashed.
+    ax : matplotlib Axes, optional
+    level : float, default=0.9
+        Probability of the band (``0`` for none).
+    components : int or list of int, optional
+        State components to draw (default: all).
+    t : array-like of shape (N,), optional
+        Time axis (default: the sample index).
+
+    Returns
+    -------
+    Axes
+    """
+    if not isinstance(estimate, StateEstimate):
+        raise TypeError(
+            "estimate must be a StateEstimate (from smooth or filter), "
+            f"got {type(estimate).__name__}"
+        )
+    if not 0.0 <= level < 1.0:
+        raise ValueError(f"level must lie in [0, 1), got {level!r}")
+    mean = estimate.mean
+    n, nx = mean.shape
+    comps = list(range(nx)) if components is None else list(np.atleast_1d(components))
+    if any(not 0 <= int(c) < nx for c in comps):
+        raise ValueError(f"components must lie in [0, {nx}), got {comps}")
+    xlabel = "sample k" if t is None else "time"
+    t = np.arange(n) if t is None else np.asarray(t, dtype=float).reshape(-1)
+    if t.shape[0] != n:
+        raise ValueError(f"t must have {n} entries, got {t.shape[0]}")
+    if x_true is not None:
+        x_true = np.asarray(x_true, dtype=float).reshape(n, -1)
+        if x_true.shape[1] != nx:
+            raise ValueError(f"x_true must have shape ({n}, {nx}), got {x_true.shape}")
+    if ax is None:
+        _, ax = _pyplot().subplots(figsize=(8.0, 3.0))
+    lo = hi = None
+    if level > 0:
+        lo, hi = estimate.interval(level)
+    for c in comps:
+        (line,) = ax.plot(t, mean[:, c], label=f"x[{c}] {estimate.kind} mean")
+        if lo is not None:
+            ax.fill_between(t, lo[:, c], hi[:, c], color=line.get_color(), alpha=0.25,
+                            linewidth=0, label=f"{level:.0%} band")
+        if x_true is not None:
+            ax.plot(t, x_true[:, c], color=line.get_color(), linestyle="--", linewidth=1.0,
+                    label=f"x[{c}] true")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("state")
+    ax.legend(fontsize="small", loc="best")
+    return ax
