@@ -5,10 +5,21 @@
 (robust to outliers) by EM with a particle smoother (Liu & Yang, Neurocomputing 2019).
 """
 
+from . import datasets, models, plotting
+from .batch import fit_independent
 from .estimator import RobustNSSMEstimator
 from .filtering import NumericalError
 from .parametric import LinearInParameters
 from .results import StateEstimate
 
-__all__ = ["RobustNSSMEstimator", "LinearInParameters", "StateEstimate", "NumericalError"]
+__all__ = [
+    "RobustNSSMEstimator",
+    "LinearInParameters",
+    "StateEstimate",
+    "NumericalError",
+    "fit_independent",
+    "datasets",
+    "models",
+    "plotting",
+]
 __version__ = "0.1.0"

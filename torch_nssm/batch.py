@@ -13,6 +13,7 @@ import copy
 import warnings
 from collections import defaultdict
 
+import numpy as np
 import torch
 from sklearn.base import clone
 from sklearn.exceptions import ConvergenceWarning
@@ -173,7 +174,10 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
         bar.close()
     n_unconverged = 0
     for b in range(n_sets):
-        estimators[b]._store(models[b], histories[b], last_est[b], datas[b], False, n_done[b], converged[b])
+        estimators[b]._store(
+            models[b], histories[b], last_est[b], datas[b], False, n_done[b], converged[b],
+            y_1d=np.ndim(y[b]) == 1,
+        )
         n_unconverged += not converged[b]
     if n_unconverged and estimator.tol > 0 and estimator.n_iter > 0:
         warnings.warn(

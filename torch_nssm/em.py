@@ -180,6 +180,12 @@ def m_step(
     for name in ("Rw", "Rv", "x0_mean", "x0_cov"):
         if not bool(torch.isfinite(getattr(new, name)).all()):
             raise NumericalError(f"the M-step produced a non-finite {name}")
+    for name in ("Rw", "Rv", "x0_cov"):
+        if int(torch.linalg.cholesky_ex(getattr(new, name)).info.max()) != 0:
+            raise NumericalError(
+                f"the M-step produced a {name} that is not positive definite "
+                "(the model diverged: try other initial values)"
+            )
     for module, label in ((model.f, "f"), (model.g, "g")):
         for pname, p in module.named_parameters():
             if not bool(torch.isfinite(p).all()):
