@@ -50,14 +50,17 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
 
         torch.set_num_threads(threads)
         t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
-        batch = SequenceBatch.from_sequences(
-            [t(u).reshape(-1, 1)], [t(y).reshape(-1, 1)]
-        )
+        batch = SequenceBatch.from_sequences([t(u).reshape(-1, 1)], [t(y).reshape(-1, 1)])
 
         def model():
             return StateSpaceModel(
-                PaperTransition(0.9, 1.0), PaperObservation(1.0), t([[0.1]]), t([[0.1]]),
-                t(float("inf")), t([0.0]), t([[1.0]]),
+                PaperTransition(0.9, 1.0),
+                PaperObservation(1.0),
+                t([[0.1]]),
+                t([[0.1]]),
+                t(float("inf")),
+                t([0.0]),
+                t([[1.0]]),
             )
 
         gen = torch.Generator().manual_seed(seed)
@@ -74,8 +77,13 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
         t_m = time.perf_counter() - t0
         mean, _ = smoothed_moments(est.filter.particles, est.smoother.log_weights)
         return {
-            "impl": f"torch_nssm-{impl}", "N": N, "L": L, "estep_s": t_e, "iter_s": t_e + t_m,
-            "peak_mb": peak, "smoothed_mean": mean[:, 0, 0].numpy().tolist(),
+            "impl": f"torch_nssm-{impl}",
+            "N": N,
+            "L": L,
+            "estep_s": t_e,
+            "iter_s": t_e + t_m,
+            "peak_mb": peak,
+            "smoothed_mean": mean[:, 0, 0].numpy().tolist(),
         }
     runner = {
         "particles-ON2": peers.particles_ffbs_on2,
@@ -86,8 +94,13 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
     base = _rss_mb()
     r = runner(u, y, L=L, seed=seed, measure_memory=False)
     return {
-        "impl": impl, "N": N, "L": L, "estep_s": r["seconds_total"], "iter_s": float("nan"),
-        "peak_mb": _rss_mb() - base, "smoothed_mean": np.asarray(r["smoothed_mean"]).tolist(),
+        "impl": impl,
+        "N": N,
+        "L": L,
+        "estep_s": r["seconds_total"],
+        "iter_s": float("nan"),
+        "peak_mb": _rss_mb() - base,
+        "smoothed_mean": np.asarray(r["smoothed_mean"]).tolist(),
     }
 
 
@@ -130,7 +143,9 @@ def main(argv=None) -> int:
                 r = _run(impl, N, L, a.seed, a.threads, a.timeout)
                 if r is not None:
                     results.append(r)
-                    print(f"  {r['impl']:>22} N={N:5d} L={L:5d}  E-step {r['estep_s']:8.3f} s", file=sys.stderr)
+                    print(
+                        f"  {r['impl']:>22} N={N:5d} L={L:5d}  E-step {r['estep_s']:8.3f} s", file=sys.stderr
+                    )
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(results, fh)

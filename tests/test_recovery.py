@@ -174,3 +174,26 @@ def test_paper_scale_200_iterations(paper_data):
     # the paper's 200 iterations change nothing that 40 had not reached
     tail = np.stack([est.history_["f.a"], est.history_["f.b"], est.history_["g.c"]], 1)[40:]
     assert np.abs(tail - tail.mean(0)).max() < 0.03
+
+
+def test_particle_schedule_and_iterate_averaging(paper_data):
+    """L grows from 40 to 160 over the iterations; the fitted values average the last 10 iterates."""
+    est = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5),
+        PaperObservation(0.5),
+        x0_mean=[0.0],
+        n_particles=40,
+        n_particles_final=160,
+        average_last=10,
+        n_iter=30,
+        tol=0,
+        random_state=0,
+    ).fit(paper_data.u, paper_data.y)
+    assert [est._particles(i) for i in (0, 15, 30)] == [40, 80, 160]
+    for key, value in (("f.a", est.f_.a), ("f.b", est.f_.b), ("g.c", est.g_.c)):
+        np.testing.assert_allclose(value.item(), est.history_[key][-10:].mean(), rtol=1e-12)
+    np.testing.assert_allclose(est.Rv_, est.history_["Rv"][-10:].mean(0), rtol=1e-12)
+    np.testing.assert_allclose(est.dof_, est.history_["dof"][-10:].mean(), rtol=1e-12)
+    assert _errors(est)[[0, 2]].max() < 0.03 and _errors(est)[1] < 0.07
+    # the averaged iterate varies less than single iterates do
+    assert np.std(est.history_["f.b"][-10:]) > 0

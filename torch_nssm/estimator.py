@@ -7,6 +7,7 @@ The estimator validates its arguments, runs the EM loop (E-step and M-step live 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import warnings
 from collections import defaultdict
@@ -103,6 +104,15 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         floored by ``Rw`` so that it cannot collapse on a single record).
     n_particles : int, default=200
         Number of particles ``L``.
+    n_particles_final : int, optional
+        If given, the number of particles grows geometrically from ``n_particles`` at the first
+        iteration to ``n_particles_final`` at iteration ``n_iter`` (cheap early iterations, low
+        Monte Carlo jitter at the end: EM with ``L`` particles jitters by ``O(1/sqrt(L))``).
+        The final E-step and later ``smooth``/``predict`` calls use ``n_particles_final``.
+    average_last : int, default=0
+        If > 1, the fitted parameters are the average of the last ``average_last`` EM iterates
+        (Polyak-Ruppert averaging of the stochastic EM), and the final E-step
+        (``outlier_weights_``, ``log_likelihood_``) runs at the averaged parameters.
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3
@@ -202,6 +212,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
         fit_x0: bool = True,
         n_particles: int = 200,
+        n_particles_final: int | None = None,
+        average_last: int = 0,
         n_iter: int = 100,
         tol: float = 1e-3,
         n_init: int = 1,
@@ -231,6 +243,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.dof_bounds = dof_bounds
         self.fit_x0 = fit_x0
         self.n_particles = n_particles
+        self.n_particles_final = n_particles_final
+        self.average_last = average_last
         self.n_iter = n_iter
         self.tol = tol
         self.n_init = n_init
@@ -272,13 +286,16 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_choice(self.smoother, "smoother", SMOOTHERS)
         V.check_choice(self.resampling, "resampling", sorted(RESAMPLING_SCHEMES))
         V.check_positive(self.n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
+        if self.n_particles_final is not None:
+            V.check_positive(
+                self.n_particles_final, "n_particles_final", integer=True, minimum=2, inclusive=True
+            )
+        V.check_positive(self.average_last, "average_last", integer=True, minimum=0, inclusive=True)
         V.check_positive(self.n_iter, "n_iter", integer=True, minimum=0, inclusive=True)
         V.check_positive(self.tol, "tol", minimum=0.0, inclusive=True)
         V.check_positive(self.n_init, "n_init", integer=True, minimum=1, inclusive=True)
         V.check_positive(self.init_jitter, "init_jitter", minimum=0.0, inclusive=True)
-        V.check_positive(
-            self.max_iter_mstep, "max_iter_mstep", integer=True, minimum=1, inclusive=True
-        )
+        V.check_positive(self.max_iter_mstep, "max_iter_mstep", integer=True, minimum=1, inclusive=True)
         V.check_positive(self.learning_rate, "learning_rate")
         V.check_positive(self.dof_init, "dof_init")
         if not isinstance(self.warm_start, (bool, np.bool_)):
@@ -288,9 +305,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         try:
             lo, hi = (float(b) for b in self.dof_bounds)
         except (TypeError, ValueError) as exc:
-            raise ValueError(
-                f"dof_bounds must be a pair (low, high), got {self.dof_bounds!r}"
-            ) from exc
+            raise ValueError(f"dof_bounds must be a pair (low, high), got {self.dof_bounds!r}") from exc
         if not 0 < lo < hi:
             raise ValueError(f"dof_bounds must satisfy 0 < low < high, got {self.dof_bounds!r}")
         if self.chunk_size is not None:
@@ -302,8 +317,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             module = getattr(self, name)
             if not isinstance(module, nn.Module):
                 raise TypeError(
-                    f"{name} must be a torch.nn.Module called as {name}(x, u), "
-                    f"got {type(module).__name__}"
+                    f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(module).__name__}"
                 )
         return V.check_device(self.device)
 
@@ -311,18 +325,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         rs = check_random_state(self.random_state if random_state is None else random_state)
         return _seeded_generator(device, rs)
 
-    def _batch(
-        self, u, y, device, *, fitted: bool, require_y: bool = True
-    ) -> tuple[SequenceBatch, bool]:
+    def _batch(self, u, y, device, *, fitted: bool, require_y: bool = True) -> tuple[SequenceBatch, bool]:
         """Validated data as a padded batch, and whether several records were given."""
         kw = dict(n_inputs=self.n_inputs_, n_outputs=self.n_outputs_) if fitted else {}
-        us, ys, multi = V.as_sequence_list(
-            u, y, dtype=self.dtype, device=device, require_y=require_y, **kw
-        )
+        us, ys, multi = V.as_sequence_list(u, y, dtype=self.dtype, device=device, require_y=require_y, **kw)
         if ys is None:  # inputs only (free run, simulation): outputs all missing
             nan = math.nan
-            ys = [torch.full((a.shape[0], self.n_outputs_), nan, dtype=a.dtype, device=device)
-                  for a in us]
+            ys = [torch.full((a.shape[0], self.n_outputs_), nan, dtype=a.dtype, device=device) for a in us]
         return SequenceBatch.from_sequences(us, ys), multi
 
     def _initial_model(self, data: SequenceBatch, device) -> StateSpaceModel:
@@ -351,16 +360,35 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             fit_x0=self.fit_x0,
         )
 
-    def _e_step(self, model, data, generator) -> EStepOutput:
+    def _particles(self, iteration: int | None = None) -> int:
+        """Particle count at EM ``iteration`` (``None``: after fitting)."""
+        if self.n_particles_final is None:
+            return self.n_particles
+        if iteration is None or self.n_iter == 0:
+            return self.n_particles_final
+        frac = min(iteration, self.n_iter) / self.n_iter
+        return int(round(self.n_particles * (self.n_particles_final / self.n_particles) ** frac))
+
+    def _e_step(self, model, data, generator, iteration: int | None = None) -> EStepOutput:
         return e_step(
-            model, data, self.n_particles, smoother=self.smoother, resampling=self.resampling,
-            ess_threshold=self.ess_threshold, chunk_size=self.chunk_size, generator=generator,
+            model,
+            data,
+            self._particles(iteration),
+            smoother=self.smoother,
+            resampling=self.resampling,
+            ess_threshold=self.ess_threshold,
+            chunk_size=self.chunk_size,
+            generator=generator,
         )
 
     def _filter(self, model, data, generator):
         return particle_filter(
-            model, data, self.n_particles, resampling=self.resampling,
-            ess_threshold=self.ess_threshold, generator=generator,
+            model,
+            data,
+            self._particles(),
+            resampling=self.resampling,
+            ess_threshold=self.ess_threshold,
+            generator=generator,
         )
 
     # ------------------------------------------------------------------ fitting
@@ -434,7 +462,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         n_obs = int(data.obs_mask.any(-1).sum())
         history: dict[str, list] = defaultdict(list)
         try:
-            est = self._e_step(model, data, generator)
+            est = self._e_step(model, data, generator, 0)
         except (NumericalError, torch.linalg.LinAlgError) as exc:
             msg = f"EM could not start: the E-step failed at the initial parameters: {exc}"
             return _EMRun(None, None, history, 0, False, NumericalError(msg))
@@ -455,7 +483,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 backup = (copy.deepcopy(model.f.state_dict()), copy.deepcopy(model.g.state_dict()))
                 try:
                     new_model = m_step(model, data, est, options)
-                    new_est = self._e_step(new_model, data, generator)
+                    new_est = self._e_step(new_model, data, generator, it + 1)
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
                     model.f.load_state_dict(backup[0])  # m_step updates the modules in place
                     model.g.load_state_dict(backup[1])
@@ -467,10 +495,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 model, est = new_model, new_est
                 n_done += 1
                 bar.update(1)
-                bar.set_postfix(loglik=f"{float(est.log_likelihood.sum()) / n_obs:.4f}/obs",
-                                dof=f"{float(model.dof):.3g}")
+                bar.set_postfix(
+                    loglik=f"{float(est.log_likelihood.sum()) / n_obs:.4f}/obs", dof=f"{float(model.dof):.3g}"
+                )
         finally:
             bar.close()
+        K = self.average_last
+        if error is None and K > 1 and n_done >= K:
+            model = _averaged(model, history, K)
+            est = self._e_step(model, data, generator)
+        elif error is None and self.n_particles_final is not None and n_done > 0:
+            est = self._e_step(model, data, generator)  # the final particle count
         return _EMRun(model, est, history, n_done, converged, error)
 
     def _store_run(self, run: _EMRun, data, multi, warm: bool, y, init_lls) -> None:
@@ -479,8 +514,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             history = {k: list(self.history_[k]) + list(v[1:]) for k, v in history.items()}
         first = y[0] if multi else y
         ndim = first.dim() if isinstance(first, torch.Tensor) else np.asarray(first).ndim
-        self._store(run.model, history, run.est, data, multi, run.n_done, run.converged,
-                    y_1d=ndim == 1)
+        self._store(run.model, history, run.est, data, multi, run.n_done, run.converged, y_1d=ndim == 1)
         self.init_log_likelihoods_ = init_lls
 
     def _store(self, model, history, est, data, multi, n_done, converged, *, y_1d=False) -> None:
@@ -516,8 +550,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         kw = dict(dtype=self.dtype, device=device)
         t = lambda a: torch.as_tensor(a, **kw)  # noqa: E731
         return StateSpaceModel(
-            copy.deepcopy(self.f_).to(**kw), copy.deepcopy(self.g_).to(**kw), t(self.Rw_),
-            t(self.Rv_), t(self.dof_), t(self.x0_mean_), t(self.x0_cov_),
+            copy.deepcopy(self.f_).to(**kw),
+            copy.deepcopy(self.g_).to(**kw),
+            t(self.Rw_),
+            t(self.Rv_),
+            t(self.dof_),
+            t(self.x0_mean_),
+            t(self.x0_cov_),
         )
 
     def _outputs(self, values: torch.Tensor, data: SequenceBatch, multi: bool):
@@ -615,8 +654,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             sw = np.asarray(sample_weight, dtype=float).reshape(-1)
             if sw.shape[0] != yt.shape[0]:
                 raise ValueError(
-                    f"sample_weight must have {yt.shape[0]} entries (one per sample), "
-                    f"got {sw.shape[0]}"
+                    f"sample_weight must have {yt.shape[0]} entries (one per sample), got {sw.shape[0]}"
                 )
         scores = []
         for j in range(yt.shape[1]):
@@ -732,6 +770,20 @@ def _seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.
     gen = torch.Generator(device=device)
     gen.manual_seed(int(rs.randint(0, 2**31 - 1)))
     return gen
+
+
+def _averaged(model: StateSpaceModel, history: dict, k: int) -> StateSpaceModel:
+    """The model at the average of the last ``k`` recorded iterates (parameters and noise)."""
+    for label, module in (("f", model.f), ("g", model.g)):
+        with torch.no_grad():
+            for name, p in module.named_parameters():
+                if p.requires_grad:
+                    p.copy_(torch.as_tensor(np.mean(history[f"{label}.{name}"][-k:], axis=0)))
+    t = lambda key, like: torch.as_tensor(np.mean(history[key][-k:], axis=0)).to(like)  # noqa: E731
+    dof = model.dof if bool(torch.isinf(model.dof)) else t("dof", model.dof)
+    return dataclasses.replace(
+        model, Rw=t("Rw", model.Rw), Rv=t("Rv", model.Rv), dof=dof, x0_mean=t("x0_mean", model.x0_mean)
+    )
 
 
 def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
