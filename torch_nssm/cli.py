@@ -87,9 +87,9 @@ def run_demo(
         fits["robust" if noise == "student-t" else "gaussian"] = est
 
     rows = [
-        ("a", truth["a"], lambda e: float(e.f_.a)),
-        ("b", truth["b"], lambda e: float(e.f_.b)),
-        ("c", truth["c"], lambda e: float(e.g_.c)),
+        ("a", truth["a"], lambda e: e.f_.a.item()),
+        ("b", truth["b"], lambda e: e.f_.b.item()),
+        ("c", truth["c"], lambda e: e.g_.c.item()),
         ("Rw", truth["Rw"], lambda e: float(e.Rw_[0, 0])),
         ("Rv", truth["Rv"], lambda e: float(e.Rv_[0, 0])),
         ("dof", None, lambda e: float(e.dof_)),
@@ -105,7 +105,10 @@ def run_demo(
     print(f"{'loglik':>10} {'':>9} " + " ".join(f"{fits[n].log_likelihood_:10.1f}" for n in names))
     print(f"{'iterations':>10} {'':>9} " + " ".join(f"{fits[n].n_iter_:10d}" for n in names))
     print(f"{'seconds':>10} {'':>9} " + " ".join(f"{fits[n].fit_seconds_:10.1f}" for n in names))
-    print("(Rv of the robust fit is the Student-t scale; its variance is Rv * dof / (dof - 2).)")
+    print(
+        "(Rv of the robust fit is the Student-t scale matrix, not a variance: with dof <= 2 the "
+        "noise has no finite variance.)"
+    )
 
     ow = fits["robust"].outlier_weights_
     flagged = ow < 0.2
