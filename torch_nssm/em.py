@@ -82,7 +82,10 @@ def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutpu
         g = model.g(x, u).reshape(B, T, L, -1).transpose(0, 1)
         resid = data.y.unsqueeze(2) - g
         resid = torch.where(scale.mask.unsqueeze(2), resid, torch.zeros_like(resid))
-        z = torch.einsum("tbij,tblj->tbli", scale.chol_inv, resid)
+        if resid.shape[-1] == 1:
+            z = resid * scale.chol_inv[..., 0].unsqueeze(2)
+        else:
+            z = torch.einsum("tbij,tblj->tbli", scale.chol_inv, resid)
         delta2 = (z * z).sum(-1)
         dof = model.per_sequence("dof", B).view(1, B, 1)
         return latent_scale_expectations(delta2, scale.n_obs.unsqueeze(-1), dof)

@@ -141,6 +141,7 @@ def latent_scale_expectations(delta2: Tensor, n_obs: Tensor, dof: Tensor) -> tup
     dof = torch.as_tensor(dof, dtype=delta2.dtype, device=delta2.device)
     nu = torch.where(torch.isinf(dof), torch.ones_like(dof), dof)
     e_lam = (nu + n_obs) / (nu + delta2)
+    # digamma on the (usually much smaller) broadcast of nu and p only, not per residual
     e_log = torch.digamma(0.5 * (nu + n_obs)) - torch.log(0.5 * (nu + delta2))
     inf = torch.isinf(dof)
     return (

@@ -47,12 +47,22 @@ def multinomial(
 
 
 def systematic(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
-    """Systematic resampling: one uniform per row, positions ``(j + U) / n``."""
+    """Systematic resampling: one uniform per row, positions ``(j + U) / n``.
+
+    Particle ``i`` gets as many copies as there are positions in ``[cdf_{i-1}, cdf_i)``, i.e.
+    ``floor(n cdf_i - U + 1) - floor(n cdf_{i-1} - U + 1)``; the indices are expanded from those
+    counts (no search), sorted as the inverse-CDF method would give them.
+    """
     B, L = log_weights.shape
     n = L if n is None else n
     u = torch.rand(B, 1, dtype=log_weights.dtype, device=log_weights.device, generator=generator)
-    j = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
-    return _inverse_cdf(log_weights, (j + u) / n)
+    cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
+    cdf = cdf / cdf[:, -1:]
+    below = torch.floor(n * cdf - u + 1.0).nan_to_num_(0.0).clamp_(0, n)  # #{j: (j + u)/n < cdf_i}
+    below[:, -1] = n
+    counts = torch.diff(below, dim=-1, prepend=torch.zeros_like(below[:, :1])).long()
+    idx = torch.arange(L, device=log_weights.device).repeat(B)
+    return torch.repeat_interleave(idx, counts.flatten(), output_size=B * n).view(B, n)
 
 
 def stratified(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
