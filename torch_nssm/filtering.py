@@ -110,7 +110,8 @@ def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tu
     return const, 0.5 * (dof + n), dof.expand_as(const)
 
 
-def _sample_initial(model: StateSpaceModel, B: int, L: int, generator) -> Tensor:
+def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator=None) -> Tensor:
+    """``L`` draws of the initial-state prior for each of ``B`` sequences, shape ``(B, L, nx)``."""
     m0 = model.per_sequence("x0_mean", B)
     C0 = torch.linalg.cholesky(model.per_sequence("x0_cov", B))
     eps = torch.randn(B, L, m0.shape[-1], dtype=m0.dtype, device=m0.device, generator=generator)
@@ -157,7 +158,7 @@ def particle_filter(
     L = n_particles
     scale = masked_scale(model.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
     Cw = torch.linalg.cholesky(model.per_sequence("Rw", B))
-    x = _sample_initial(model, B, L, generator)
+    x = sample_initial_state(model, B, L, generator)
     nx = x.shape[-1]
     particles = torch.empty(T, B, L, nx, dtype=x.dtype, device=x.device)
     log_weights = torch.empty(T, B, L, dtype=x.dtype, device=x.device)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .filtering import FilterOutput
+from .filtering import FilterOutput, sample_initial_state
 from .model import StateSpaceModel
 from .noise import sample_student_t
 
@@ -22,14 +22,6 @@ def _step(model: StateSpaceModel, x: Tensor, u: Tensor, chol_w: Tensor, generato
     """``f(x, u) + w`` for particles ``x`` ``(..., B, L, nx)`` and inputs ``u`` ``(..., B, nu)``."""
     noise = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
     return model.transition(x, u) + noise @ chol_w.transpose(-1, -2)
-
-
-def _initial_particles(model: StateSpaceModel, B: int, L: int, generator) -> Tensor:
-    """``L`` draws of the initial-state prior for each of ``B`` sequences, ``(B, L, nx)``."""
-    m0 = model.per_sequence("x0_mean", B)
-    c0 = torch.linalg.cholesky(model.per_sequence("x0_cov", B))
-    eps = torch.randn(B, L, m0.shape[-1], dtype=m0.dtype, device=m0.device, generator=generator)
-    return m0.unsqueeze(1) + eps @ c0.transpose(-1, -2)
 
 
 @torch.no_grad()
@@ -95,7 +87,7 @@ def k_step_ahead(
     h = min(horizon, T)
     parts = []
     # t < horizon: the prior, propagated t steps (one pass over the first h steps)
-    x = _initial_particles(model, B, L, generator)
+    x = sample_initial_state(model, B, L, generator)
     for t in range(h):
         parts.append(model.observation(x, u[t]).mean(-2))
         if t + 1 < h:
@@ -138,7 +130,7 @@ def simulate(
     """
     T, B, _ = u.shape
     chol_w = torch.linalg.cholesky(model.per_sequence("Rw", B))
-    x = _initial_particles(model, B, n_samples, generator)
+    x = sample_initial_state(model, B, n_samples, generator)
     states = torch.empty(T, *x.shape, dtype=x.dtype, device=x.device)
     for k in range(T):
         states[k] = x
