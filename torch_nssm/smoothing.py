@@ -168,11 +168,20 @@ def _whitening(model: StateSpaceModel, B: int, like: Tensor) -> Tensor:
     return torch.linalg.solve_triangular(Cw, eye.expand_as(Cw), upper=False).transpose(-1, -2)
 
 
+def _cdf(log_weights: Tensor) -> Tensor:
+    """Cumulative weights along the last dimension (any leading shape)."""
+    return torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
+
+
+def _draw_cdf(cdf: Tensor, n: int, generator) -> Tensor:
+    """``n`` i.i.d. indices per row of a cumulative-weight table ``(B, L)`` (inverse CDF)."""
+    u = torch.rand(cdf.shape[0], n, dtype=cdf.dtype, device=cdf.device, generator=generator)
+    return torch.searchsorted(cdf, u * cdf[:, -1:]).clamp_(max=cdf.shape[-1] - 1)
+
+
 def _draw(log_weights: Tensor, n: int, generator) -> Tensor:
     """``n`` i.i.d. indices per row of the normalised log-weights ``(B, L)`` (inverse CDF)."""
-    cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
-    u = torch.rand(log_weights.shape[0], n, dtype=cdf.dtype, device=cdf.device, generator=generator)
-    return torch.searchsorted(cdf, u * cdf[:, -1:]).clamp_(max=log_weights.shape[-1] - 1)
+    return _draw_cdf(_cdf(log_weights), n, generator)
 
 
 def _log_kernel(zf: Tensor, idx: Tensor, zx_traj: Tensor) -> Tensor:
@@ -233,7 +242,9 @@ def ffbsi(
     trans_w = torch.zeros(T - 1, B, L, dtype=dtype, device=device)
     scatter = torch.zeros(B, nx, nx, dtype=dtype, device=device)
 
-    J_next = _draw(logW[T - 1], M, generator)  # (B, M)
+    cdfs = _cdf(logW)  # (T, B, L), once for all steps
+    all_valid = trans.all(-1).tolist()
+    J_next = _draw_cdf(cdfs[T - 1], M, generator)  # (B, M)
     for k in range(T - 2, -1, -1):
         x_next = torch.gather(X[k + 1], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
         zf = model.transition(X[k], data.u[k]) @ Cinv_t
@@ -242,7 +253,7 @@ def ffbsi(
             J = torch.zeros(B, M, dtype=torch.long, device=device)
             pending = torch.ones(B, M, dtype=torch.bool, device=device)
             for _ in range(max_tries):
-                prop = _draw(logW[k], M, generator)
+                prop = _draw_cdf(cdfs[k], M, generator)
                 log_u = torch.log(torch.rand(B, M, dtype=dtype, device=device, generator=generator))
                 accept = pending & (log_u < _log_kernel(zf, prop, zx))
                 J = torch.where(accept, prop, J)
@@ -259,16 +270,18 @@ def ffbsi(
         else:
             J = torch.gather(filt.ancestors[k + 1], 1, J_next)
             log_t = _log_kernel(zf, J, zx)
-            for _ in range(mcmc_steps):
-                prop = _draw(logW[k], M, generator)
+            props = _draw_cdf(cdfs[k], M * mcmc_steps, generator).view(B, mcmc_steps, M)
+            log_us = torch.log(torch.rand(B, mcmc_steps, M, dtype=dtype, device=device, generator=generator))
+            for step in range(mcmc_steps):
+                prop = props[:, step]
                 log_t_prop = _log_kernel(zf, prop, zx)
-                log_u = torch.log(torch.rand(B, M, dtype=dtype, device=device, generator=generator))
-                accept = log_u < log_t_prop - log_t
+                accept = log_us[:, step] < log_t_prop - log_t
                 J = torch.where(accept, prop, J)
                 log_t = torch.where(accept, log_t_prop, log_t)
         valid = trans[k]
-        # Rows past a sequence's end restart from the filter (their transitions are masked out).
-        J = torch.where(valid.unsqueeze(-1), J, _draw(logW[k], M, generator))
+        if not all_valid[k]:
+            # Rows past a sequence's end restart from the filter (their transitions are masked out).
+            J = torch.where(valid.unsqueeze(-1), J, _draw_cdf(cdfs[k], M, generator))
         s = torch.zeros(B, L, dtype=dtype, device=device).scatter_add_(
             1, J, torch.full((B, M), 1.0 / M, dtype=dtype, device=device)
         )
