@@ -197,3 +197,28 @@ def test_particle_schedule_and_iterate_averaging(paper_data):
     assert _errors(est)[[0, 2]].max() < 0.03 and _errors(est)[1] < 0.07
     # the averaged iterate varies less than single iterates do
     assert np.std(est.history_["f.b"][-10:]) > 0
+
+
+def test_batched_m_step_equals_per_data_set_m_step(monkeypatch):
+    """fit_independent's batched closed-form M-step gives the per-data-set m_step's estimates."""
+    import torch_nssm.batch as batch
+
+    sets = [make_paper_example(n_samples=200, random_state=s) for s in (3, 4)]
+    proto = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5),
+        PaperObservation(0.5),
+        x0_mean=[0.0],
+        n_particles=50,
+        n_iter=5,
+        tol=0,
+        random_state=0,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fast = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
+        monkeypatch.setattr(batch, "_batchable", lambda module: False)
+        slow = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(_theta(a), _theta(b), rtol=1e-6)
+        for attr in ("Rw_", "Rv_", "dof_", "x0_mean_", "x0_cov_"):
+            np.testing.assert_allclose(getattr(a, attr), getattr(b, attr), rtol=1e-6)

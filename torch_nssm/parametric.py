@@ -30,6 +30,23 @@ class LinearInParameters(nn.Module):
         """All parameters as one flat vector."""
         return torch.cat([p.reshape(-1) for p in self.parameters()])
 
+    def free_mask(self) -> Tensor:
+        """Boolean mask over ``theta``: True for entries of parameters with ``requires_grad``."""
+        return torch.cat(
+            [
+                torch.full((p.numel(),), p.requires_grad, dtype=torch.bool, device=p.device)
+                for p in self.parameters()
+            ]
+        )
+
+    @torch.no_grad()
+    def set_theta(self, theta: Tensor) -> None:
+        """Write the flat vector ``theta`` back into the parameters (in :meth:`theta` order)."""
+        start = 0
+        for p in self.parameters():
+            p.copy_(theta[start : start + p.numel()].view_as(p))
+            start += p.numel()
+
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         Phi, offset = self.features(x, u)
         return offset + (Phi @ self.theta().unsqueeze(-1)).squeeze(-1)
@@ -59,10 +76,7 @@ class LinearInParameters(nn.Module):
         ridge : float
             Relative Tikhonov term keeping the normal equations solvable.
         """
-        params = list(self.parameters())
-        free = torch.cat(
-            [torch.full((p.numel(),), p.requires_grad, dtype=torch.bool, device=p.device) for p in params]
-        )
+        free = self.free_mask()
         if not bool(free.any()):
             return
         Phi, offset = self.features(x, u)
@@ -84,8 +98,4 @@ class LinearInParameters(nn.Module):
             return
         new_theta = theta.clone()
         new_theta[free] = sol
-        offset_i = 0
-        for p in params:
-            n = p.numel()
-            p.copy_(new_theta[offset_i : offset_i + n].view_as(p))
-            offset_i += n
+        self.set_theta(new_theta)
