@@ -141,8 +141,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         LBFGS iterations (or Adam steps) per M-step.
     learning_rate : float, default=1e-2
         Adam's step size.
-    smoother : str, default="ffbsm"
-        Particle smoother of the E-step (see :data:`torch_nssm.em.SMOOTHERS`).
+    smoother : {"ffbsm", "ffbsi", "mcmc"}, default="ffbsm"
+        Particle smoother of the E-step: ``"ffbsm"`` exact forward-filtering backward-smoothing,
+        O(N L^2); ``"ffbsi"`` backward simulation by rejection sampling with an exact fallback and
+        ``"mcmc"`` backward simulation with Metropolis-Hastings moves, both O(N L) and giving the
+        same M-step estimates within Monte Carlo error (:mod:`torch_nssm.smoothing`).
     resampling : {"systematic", "stratified", "residual", "multinomial"}, default="systematic"
     ess_threshold : float, default=1.0
         Resample when the effective sample size is below ``ess_threshold * n_particles``
