@@ -1,6 +1,9 @@
 """Command line: ``python -m torch_nssm`` fits the paper's Section 4.1 example and prints the result.
 
 ``python -m torch_nssm [demo] [--n-samples N] [--particles L] [--iterations K] [--seed S] [--gaussian]``
+
+``python -m torch_nssm reproduce {fig2,gopaluni,table1,manipulator,all} [--fast] [--out DIR] [--seed S]``
+regenerates the figures and tables of the paper's Section 4 (see :mod:`torch_nssm.reproduce`).
 """
 
 from __future__ import annotations
@@ -11,12 +14,41 @@ import warnings
 
 import numpy as np
 
-__all__ = ["main", "run_demo"]
+__all__ = ["main", "run_demo", "run_reproduce", "build_parser"]
 
 
 def _demo_parser(sub) -> None:
     p = sub.add_parser("demo", help="fit the paper's Section 4.1 example (default command)")
     _demo_args(p)
+
+
+def _reproduce_parser(sub) -> None:
+    p = sub.add_parser("reproduce", help="regenerate the paper's Section 4 figures and tables")
+    p.add_argument("experiment", choices=["fig2", "gopaluni", "table1", "manipulator", "all"],
+                   help="which experiment (all: every one in turn)")
+    p.add_argument("--fast", action="store_true", help="tiny settings (seconds), e.g. for CI")
+    p.add_argument("--out", default="reproduction", help="output folder (default: ./reproduction)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the data and the particle methods")
+
+
+def run_reproduce(experiment: str, fast: bool = False, out: str = "reproduction", seed: int = 0) -> dict:
+    """Run one experiment of :mod:`torch_nssm.reproduce` (or ``"all"``) and print its tables.
+
+    Returns
+    -------
+    dict
+        ``{name: results}`` of the experiments run.
+    """
+    from . import reproduce
+
+    names = list(reproduce.EXPERIMENTS) if experiment == "all" else [experiment]
+    results = {}
+    for name in names:
+        res = reproduce.EXPERIMENTS[name](fast=fast, out_dir=out, seed=seed)
+        print(f"\n== {name} ({res['seconds']:.0f} s) ==\n{res['table']}")
+        print("files: " + ", ".join(res["files"]))
+        results[name] = res
+    return results
 
 
 def _demo_args(p: argparse.ArgumentParser) -> None:
@@ -125,8 +157,8 @@ def run_demo(
     return fits
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``python -m torch_nssm``."""
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m torch_nssm`` (``demo``, the default, and ``reproduce``)."""
     parser = argparse.ArgumentParser(
         prog="python -m torch_nssm",
         description="Robust identification of nonlinear state-space models (Liu & Yang 2019).",
@@ -134,10 +166,19 @@ def main(argv: list[str] | None = None) -> int:
     _demo_args(parser)
     sub = parser.add_subparsers(dest="command")
     _demo_parser(sub)
-    args = parser.parse_args(argv)
+    _reproduce_parser(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``python -m torch_nssm``."""
+    args = build_parser().parse_args(argv)
     import torch
 
     torch.set_num_threads(max(1, args.threads))
+    if args.command == "reproduce":
+        run_reproduce(args.experiment, fast=args.fast, out=args.out, seed=args.seed)
+        return 0
     run_demo(
         n_samples=args.n_samples,
         outliers=args.outliers,
