@@ -222,3 +222,25 @@ def test_batched_m_step_equals_per_data_set_m_step(monkeypatch):
         np.testing.assert_allclose(_theta(a), _theta(b), rtol=1e-6)
         for attr in ("Rw_", "Rv_", "dof_", "x0_mean_", "x0_cov_"):
             np.testing.assert_allclose(getattr(a, attr), getattr(b, attr), rtol=1e-6)
+
+
+def test_fit_independent_averages_iterates_and_grows_particles():
+    sets = [make_paper_example(n_samples=150, random_state=s) for s in (6, 7)]
+    proto = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5),
+        PaperObservation(0.5),
+        x0_mean=[0.0],
+        n_particles=30,
+        n_particles_final=60,
+        average_last=4,
+        n_iter=8,
+        tol=0,
+        random_state=0,
+    )
+    fits = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
+    for f in fits:
+        assert f.n_iter_ == 8
+        for key, value in (("f.a", f.f_.a), ("f.b", f.f_.b), ("g.c", f.g_.c)):
+            np.testing.assert_allclose(value.item(), f.history_[key][-4:].mean(), rtol=1e-12)
+        np.testing.assert_allclose(f.Rw_, f.history_["Rw"][-4:].mean(0), rtol=1e-12)
+        assert np.isfinite(f.log_likelihood_) and f.outlier_weights_.shape == (150,)

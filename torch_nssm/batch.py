@@ -272,7 +272,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
     last_est: dict[int, object] = {}
     from .estimator import _converged, _record  # the single-fit bookkeeping, reused
 
-    batched_mstep = all(_batchable(m) for m in (models[0].f, models[0].g)) and estimator.n_particles >= 2
+    batched_mstep = all(_batchable(m) for m in (models[0].f, models[0].g))
     verbose = estimator.verbose > 0 if show_progress is None else show_progress
     bar = tqdm(total=estimator.n_iter, desc=f"robust EM x{n_sets}", disable=not verbose)
     try:
@@ -284,7 +284,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             est = e_step(
                 batch_model,
                 all_data.select(idx),
-                estimator.n_particles,
+                estimator._particles(it),
                 smoother=estimator.smoother,
                 resampling=estimator.resampling,
                 ess_threshold=estimator.ess_threshold,
@@ -338,6 +338,31 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             bar.update(1)
     finally:
         bar.close()
+    # As in a single fit: average the last iterates and/or finish at the final particle count,
+    # with one more (batched) E-step at the parameters that are returned.
+    K = estimator.average_last
+    final = [
+        b for b in range(n_sets) if (K > 1 and n_done[b] >= K) or (estimator.n_particles_final and n_done[b])
+    ]
+    if final:
+        from .estimator import _averaged
+
+        for b in final:
+            if K > 1 and n_done[b] >= K:
+                models[b] = _averaged(models[b], histories[b], K)
+        idx = torch.tensor(final, device=device)
+        est = e_step(
+            _stack_models([models[b] for b in final]),
+            all_data.select(idx),
+            estimator._particles(),
+            smoother=estimator.smoother,
+            resampling=estimator.resampling,
+            ess_threshold=estimator.ess_threshold,
+            chunk_size=estimator.chunk_size,
+            generator=generator,
+        )
+        for j, b in enumerate(final):
+            last_est[b] = est.select(slice(j, j + 1))
     n_unconverged = 0
     for b in range(n_sets):
         estimators[b]._store(
