@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_nssm import RobustNSSMEstimator
+from torch_nssm import LinearInParameters, RobustNSSMEstimator
 from torch_nssm.batch import fit_independent
 from torch_nssm.datasets import make_manipulator, make_paper_example
 from torch_nssm.models import (
@@ -244,3 +244,77 @@ def test_fit_independent_averages_iterates_and_grows_particles():
             np.testing.assert_allclose(value.item(), f.history_[key][-4:].mean(), rtol=1e-12)
         np.testing.assert_allclose(f.Rw_, f.history_["Rw"][-4:].mean(0), rtol=1e-12)
         assert np.isfinite(f.log_likelihood_) and f.outlier_weights_.shape == (150,)
+
+
+class _TwoStateF(LinearInParameters):
+    """f(x, u) = [a0 x0 + a1 x1, a2 x0 + a3 u]: different regressors per row, so the metric of the
+    weighted regression matters (with identical regressors GLS equals OLS row by row)."""
+
+    def __init__(self):
+        super().__init__()
+        self.A = torch.nn.Parameter(torch.tensor([0.5, 0.1, -0.2, 0.6], dtype=torch.float64))
+
+    def features(self, x, u):
+        z = torch.zeros_like(x[..., :1])
+        rows = [torch.cat([x, z, z], -1), torch.cat([z, z, x[..., :1], u], -1)]
+        return torch.stack(rows, -2), torch.zeros_like(x)
+
+
+class _TwoStateG(LinearInParameters):
+    """g(x, u) = c x_0 + x_1."""
+
+    def __init__(self):
+        super().__init__()
+        self.c = torch.nn.Parameter(torch.tensor(0.7, dtype=torch.float64))
+
+    def features(self, x, u):
+        return x[..., :1].unsqueeze(-1), x[..., 1:2]
+
+
+def test_batched_m_step_uses_the_process_noise_metric_with_two_states(monkeypatch):
+    """With nx = 2 and a non-diagonal Rw the theta_f metric matters: batched == per data set."""
+    import torch_nssm.batch as batch
+
+    rng = np.random.default_rng(0)
+    us, ys = [], []
+    for _ in range(2):
+        u = rng.standard_normal(120)
+        x = np.zeros((120, 2))
+        for k in range(119):
+            x[k + 1] = [0.8 * x[k, 0] + 0.2 * x[k, 1], -0.3 * x[k, 0] + u[k]] + 0.3 * rng.standard_normal(2)
+        us.append(u)
+        ys.append(x[:, 0] + x[:, 1] + 0.2 * rng.standard_normal(120))
+    proto = RobustNSSMEstimator(
+        _TwoStateF(),
+        _TwoStateG(),
+        x0_mean=[0.0, 0.0],
+        Rw_init=[[0.2, 0.15], [0.15, 0.3]],
+        n_particles=40,
+        n_iter=3,
+        tol=0,
+        random_state=0,
+    )
+    fast = fit_independent(proto, us, ys)
+    monkeypatch.setattr(batch, "_batchable", lambda module: False)
+    slow = fit_independent(proto, us, ys)
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a.f_.A.detach().numpy(), b.f_.A.detach().numpy(), rtol=1e-6)
+        np.testing.assert_allclose(a.Rw_, b.Rw_, rtol=1e-6)
+
+
+def test_noise_covariances_can_be_held_fixed(paper_data):
+    est = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5),
+        PaperObservation(0.5),
+        x0_mean=[0.0],
+        Rw_init=0.1,
+        Rv_init=0.05,
+        fit_Rw=False,
+        fit_Rv=False,
+        n_particles=50,
+        n_iter=5,
+        tol=0,
+        random_state=0,
+    ).fit(paper_data.u, paper_data.y)
+    assert est.Rw_[0, 0] == 0.1 and est.Rv_[0, 0] == 0.05
+    assert np.all(est.history_["Rw"] == 0.1) and est.f_.a.item() != 0.5

@@ -148,12 +148,12 @@ def _linear_m_step(
         U[:-1],
         sm.next_mean,
         sm.transition_weights,
-        torch.linalg.inv(stacked.Rw).view(1, B, 1, *stacked.Rw.shape[1:]),
+        _inverse_cholesky(stacked.Rw).view(1, B, 1, *stacked.Rw.shape[1:]),  # metric Rw_old^-1
     )
     r = sm.next_mean - fitted
     n_trans = data.transition_mask.sum(0).clamp_min(1).to(X.dtype)
     Rw = torch.einsum("tbl,tblp,tblq->bpq", sm.transition_weights, r, r) + sm.residual_scatter
-    Rw = _sym(Rw / n_trans.view(B, 1, 1))
+    Rw = _sym(Rw / n_trans.view(B, 1, 1)) if options.fit_Rw else stacked.Rw
     # theta_g and Rv (weights W <lam>, metric Rv_old^-1 on the observed components)
     scale = filt.scale
     observed = data.obs_mask.any(-1)  # (T, B)
@@ -177,6 +177,8 @@ def _linear_m_step(
     n_obs = observed.sum(0).clamp_min(1).to(X.dtype)
     Rv = torch.einsum("tbl,tblp,tblq->bpq", W * est.e_lam, rhat, rhat)
     Rv = _sym((Rv + torch.einsum("tb,tbpq->bpq", W.sum(-1), cond)) / n_obs.view(B, 1, 1))
+    if not options.fit_Rv:
+        Rv = stacked.Rv
     dof = stacked.dof
     if options.fit_dof and not bool(torch.isinf(dof).all()):
         c = (W * (est.e_log_lam - est.e_lam)).sum((0, 2)) / n_obs

@@ -134,6 +134,8 @@ class MStepOptions:
         Update the DOF (ignored for Gaussian noise).
     dof_bounds : (float, float)
         Bracket of the DOF root-solve.
+    fit_Rw, fit_Rv : bool
+        Update the process-noise covariance / measurement-noise scale (else they stay fixed).
     fit_x0 : bool
         Update the initial-state prior from the smoothed first state.
     """
@@ -144,6 +146,8 @@ class MStepOptions:
     fit_dof: bool = True
     dof_bounds: tuple[float, float] = (0.1, 1000.0)
     fit_x0: bool = True
+    fit_Rw: bool = True
+    fit_Rv: bool = True
 
 
 def m_step(
@@ -162,13 +166,13 @@ def m_step(
     fit = dict(optimizer=options.optimizer, max_iter=options.max_iter, learning_rate=options.learning_rate)
     rows_f = transition_rows(model, data, est.filter, est.smoother)
     fit_weighted_regression(model.f, rows_f, **fit)
-    Rw = process_noise_update(model.f, rows_f, est.smoother, data)
+    Rw = process_noise_update(model.f, rows_f, est.smoother, data) if options.fit_Rw else model.Rw
 
     rows_g, sw, e_lam, e_log = observation_rows(
         model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam
     )
     fit_weighted_regression(model.g, rows_g, **fit)
-    Rv = measurement_noise_update(model.g, rows_g, data, model.Rv, sw)
+    Rv = measurement_noise_update(model.g, rows_g, data, model.Rv, sw) if options.fit_Rv else model.Rv
 
     dof = model.dof
     if options.fit_dof and not model.gaussian:

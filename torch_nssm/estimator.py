@@ -99,6 +99,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Estimate the DOF; if False it stays at ``dof_init``.
     dof_bounds : (float, float), default=(0.1, 1000.0)
         Bracket of the DOF root-solve.
+    fit_Rw : bool, default=True
+        Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
+        the physics, or to isolate the estimation of ``f``).
+    fit_Rv : bool, default=True
+        Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
         Re-estimate the initial-state prior from the smoothed first state (its covariance is
         floored by ``Rw`` so that it cannot collapse on a single record).
@@ -213,6 +218,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         noise: str = "student-t",
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
+        fit_Rw: bool = True,
+        fit_Rv: bool = True,
         fit_x0: bool = True,
         n_particles: int = 200,
         n_particles_final: int | None = None,
@@ -244,6 +251,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.noise = noise
         self.fit_dof = fit_dof
         self.dof_bounds = dof_bounds
+        self.fit_Rw = fit_Rw
+        self.fit_Rv = fit_Rv
         self.fit_x0 = fit_x0
         self.n_particles = n_particles
         self.n_particles_final = n_particles_final
@@ -361,6 +370,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             fit_dof=self.fit_dof,
             dof_bounds=tuple(float(b) for b in self.dof_bounds),
             fit_x0=self.fit_x0,
+            fit_Rw=bool(self.fit_Rw),
+            fit_Rv=bool(self.fit_Rv),
         )
 
     def _particles(self, iteration: int | None = None) -> int:
