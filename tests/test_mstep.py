@@ -128,8 +128,7 @@ def test_process_noise_update_equals_pairwise_formula(nonlinear_estep, theta):
             direct
             - (
                 Rw.numpy()
-                - est.smoother.residual_scatter.sum(0).numpy()
-                / sum(n - 1 for n in data.lengths.tolist())
+                - est.smoother.residual_scatter.sum(0).numpy() / sum(n - 1 for n in data.lengths.tolist())
             )
         )
         > 0
@@ -141,9 +140,7 @@ def test_transition_rows(nonlinear_estep):
     rows = transition_rows(model, data, est.filter, est.smoother)
     np.testing.assert_allclose(rows.precision.numpy(), np.linalg.inv(model.Rw.numpy()), rtol=1e-12)
     # total weight: one per transition inside the sequences
-    assert rows.weight.sum().item() == pytest.approx(
-        sum(n - 1 for n in data.lengths.tolist()), rel=1e-9
-    )
+    assert rows.weight.sum().item() == pytest.approx(sum(n - 1 for n in data.lengths.tolist()), rel=1e-9)
     assert rows.x.shape[0] == rows.target.shape[0] == rows.u.shape[0] == rows.weight.shape[0]
 
 
@@ -197,9 +194,7 @@ def test_closed_form_and_lbfgs_reach_the_same_minimiser(linear_estep, which):
         assert float(weighted_loss(closed, rows)) == pytest.approx(loss_closed, rel=1e-12)
     assert _gradient_norm(closed, rows) < 1e-8
     # and the minimiser is near the truth (the E-step ran at the true parameters)
-    truth = np.concatenate(
-        [M.reshape(-1) for M in ((sysm.A, sysm.B) if which == "f" else (sysm.C, sysm.D))]
-    )
+    truth = np.concatenate([M.reshape(-1) for M in ((sysm.A, sysm.B) if which == "f" else (sysm.C, sysm.D))])
     assert np.abs(want - truth).max() < 0.25
 
 
@@ -374,14 +369,11 @@ def test_dof_update_recovers_known_dof():
     def nll(log_nu):
         nu = math.exp(log_nu)
         return -sum(
-            stats.multivariate_t(np.zeros(m.sum()), R[np.ix_(m, m)], df=nu).logpdf(r).sum()
-            for r, m in groups
+            stats.multivariate_t(np.zeros(m.sum()), R[np.ix_(m, m)], df=nu).logpdf(r).sum() for r, m in groups
         )
 
     mle = math.exp(
-        optimize.minimize_scalar(
-            nll, bounds=(0.0, 4.0), method="bounded", options={"xatol": 1e-7}
-        ).x
+        optimize.minimize_scalar(nll, bounds=(0.0, 4.0), method="bounded", options={"xatol": 1e-7}).x
     )
     assert float(dof) == pytest.approx(mle, rel=1e-6)
     assert abs(float(dof) - true_dof) < 0.8
@@ -396,9 +388,7 @@ def test_dof_update_gaussian_data_hits_upper_bound():
 
     for _ in range(200):
         lam, log_lam = latent_scale_expectations(d2, torch.tensor(1.0, dtype=DTYPE), dof)
-        dof = dof_update(
-            torch.ones(T, dtype=DTYPE), lam, log_lam, torch.tensor(float(T)), (0.1, 200.0)
-        )
+        dof = dof_update(torch.ones(T, dtype=DTYPE), lam, log_lam, torch.tensor(float(T)), (0.1, 200.0))
     assert float(dof) > 30.0
 
 
@@ -475,9 +465,7 @@ def test_measurement_noise_update_recovers_R_with_known_states():
     R = np.array([[0.5, 0.2], [0.2, 0.3]])
     x, y = simulate_t_outputs(R, math.inf, T, B, rng)
     y.reshape(-1)[rng.choice(y.size, size=y.size // 4, replace=False)] = np.nan
-    data = SequenceBatch(
-        u=torch.zeros(T, B, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T])
-    )
+    data = SequenceBatch(u=torch.zeros(T, B, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T]))
     model = StateSpaceModel(
         f=LinearF(np.eye(2), np.zeros((2, 1))),
         g=LinearG(np.eye(2), np.zeros((2, 1))),
@@ -505,9 +493,7 @@ def test_measurement_noise_update_is_positive_definite():
     y[:100, 0, 0] = np.where(np.arange(100) % 2, 1.0, -1.0)
     y[100:200, 0, 1] = np.where(np.arange(100) % 2, 1.0, -1.0)
     y[200:, 0, :] = 3.0
-    data = SequenceBatch(
-        u=torch.zeros(T, 1, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T])
-    )
+    data = SequenceBatch(u=torch.zeros(T, 1, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T]))
     target = torch.as_tensor(y[:, 0])
     obs = ~torch.isnan(target)
     rows = RegressionRows(
@@ -518,7 +504,10 @@ def test_measurement_noise_update_is_positive_definite():
         precision=(obs[:, :, None] & obs[:, None, :]).to(DTYPE),
     )
     Rv = measurement_noise_update(
-        LinearG(np.eye(2), np.zeros((2, 1))), rows, data, torch.eye(2, dtype=DTYPE),
+        LinearG(np.eye(2), np.zeros((2, 1))),
+        rows,
+        data,
+        torch.eye(2, dtype=DTYPE),
         torch.ones(T, dtype=DTYPE),
     )
     assert torch.linalg.eigvalsh(Rv).min() > 0  # pairwise deletion gave eigenvalues (-7.7, 10.3)
@@ -532,9 +521,7 @@ def test_observation_rows_when_particles_equal_outputs():
     data = SequenceBatch.from_sequences([torch.as_tensor(u)], [torch.as_tensor(y)])
     model = sysm.model(5.0)
     est = e_step(model, data, 2, generator=generator(0))  # L = 2 = p
-    rows, sw, lam, _ = observation_rows(
-        model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam
-    )
+    rows, sw, lam, _ = observation_rows(model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam)
     assert rows.target.shape == (rows.x.shape[0], 2)
     assert rows.precision.shape == (rows.x.shape[0], 2, 2)
 
@@ -559,3 +546,42 @@ def _observed_precision(R: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     eye = torch.eye(R.shape[0], dtype=R.dtype)
     Rm = R * o[:, :, None] * o[:, None, :] + eye * (1 - o)[:, :, None]
     return torch.linalg.inv(Rm) * o[:, :, None] * o[:, None, :]
+
+
+class _Affine(torch.nn.Module):
+    """A plain module (no closed form): out = w * x + v * u."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.tensor(0.0, dtype=DTYPE))
+        self.v = torch.nn.Parameter(torch.tensor(0.0, dtype=DTYPE))
+
+    def forward(self, x, u):
+        return self.w * x + self.v * u
+
+
+def test_minibatch_adam_early_stopping_reaches_the_minimiser():
+    rng = np.random.default_rng(5)
+    n = 4000
+    x = torch.as_tensor(rng.standard_normal((n, 1)))
+    u = torch.as_tensor(rng.standard_normal((n, 1)))
+    target = 0.7 * x - 0.4 * u + 0.05 * torch.as_tensor(rng.standard_normal((n, 1)))
+    weight = torch.as_tensor(rng.uniform(0.1, 1.0, n))
+    rows = RegressionRows(x, u, target, weight, torch.eye(1, dtype=DTYPE))
+    results = []
+    for _ in range(2):
+        module = _Affine()
+        loss = fit_weighted_regression(
+            module,
+            rows,
+            optimizer="adam",
+            max_iter=60,
+            learning_rate=0.05,
+            batch_size=256,
+            generator=torch.Generator().manual_seed(0),
+        )
+        results.append((module.w.item(), module.v.item(), loss))
+    assert results[0] == results[1]  # reproducible with a seeded generator
+    w, v, loss = results[0]
+    assert abs(w - 0.7) < 0.01 and abs(v + 0.4) < 0.01
+    assert loss < 0.05**2 * 1.2

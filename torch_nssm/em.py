@@ -134,6 +134,10 @@ class MStepOptions:
         Update the DOF (ignored for Gaussian noise).
     dof_bounds : (float, float)
         Bracket of the DOF root-solve.
+    batch_size : int or None
+        Minibatch size of Adam (``max_iter`` is then a number of epochs, early-stopped).
+    generator : torch.Generator or None
+        Shuffles the minibatches (reproducible fits).
     fit_Rw, fit_Rv : bool
         Update the process-noise covariance / measurement-noise scale (else they stay fixed).
     fit_x0 : bool
@@ -148,6 +152,8 @@ class MStepOptions:
     fit_x0: bool = True
     fit_Rw: bool = True
     fit_Rv: bool = True
+    batch_size: int | None = None
+    generator: torch.Generator | None = None
 
 
 def m_step(
@@ -163,7 +169,13 @@ def m_step(
     NumericalError
         If an update is not finite (the caller keeps the previous parameters).
     """
-    fit = dict(optimizer=options.optimizer, max_iter=options.max_iter, learning_rate=options.learning_rate)
+    fit = dict(
+        optimizer=options.optimizer,
+        max_iter=options.max_iter,
+        learning_rate=options.learning_rate,
+        batch_size=options.batch_size,
+        generator=options.generator,
+    )
     rows_f = transition_rows(model, data, est.filter, est.smoother)
     fit_weighted_regression(model.f, rows_f, **fit)
     Rw = process_noise_update(model.f, rows_f, est.smoother, data) if options.fit_Rw else model.Rw

@@ -146,6 +146,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         LBFGS iterations (or Adam steps) per M-step.
     learning_rate : float, default=1e-2
         Adam's step size.
+    batch_size : int, optional
+        With ``optimizer="adam"``: minibatch size over the ``N L`` weighted regression rows of the
+        M-step; ``max_iter_mstep`` is then a number of epochs, early-stopped on the full weighted
+        objective (the M-step for neural networks).  Full-batch steps if omitted.
     smoother : {"ffbsm", "ffbsi", "mcmc"}, default="ffbsm"
         Particle smoother of the E-step: ``"ffbsm"`` exact forward-filtering backward-smoothing,
         O(N L^2); ``"ffbsi"`` backward simulation by rejection sampling with an exact fallback and
@@ -232,6 +236,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         optimizer: str = "lbfgs",
         max_iter_mstep: int = 20,
         learning_rate: float = 1e-2,
+        batch_size: int | None = None,
         smoother: str = "ffbsm",
         resampling: str = "systematic",
         ess_threshold: float = 1.0,
@@ -265,6 +270,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.optimizer = optimizer
         self.max_iter_mstep = max_iter_mstep
         self.learning_rate = learning_rate
+        self.batch_size = batch_size
         self.smoother = smoother
         self.resampling = resampling
         self.ess_threshold = ess_threshold
@@ -309,6 +315,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_positive(self.init_jitter, "init_jitter", minimum=0.0, inclusive=True)
         V.check_positive(self.max_iter_mstep, "max_iter_mstep", integer=True, minimum=1, inclusive=True)
         V.check_positive(self.learning_rate, "learning_rate")
+        if self.batch_size is not None:
+            V.check_positive(self.batch_size, "batch_size", integer=True, minimum=1, inclusive=True)
         V.check_positive(self.dof_init, "dof_init")
         if not isinstance(self.warm_start, (bool, np.bool_)):
             raise TypeError(f"warm_start must be True or False, got {self.warm_start!r}")
@@ -372,6 +380,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             fit_x0=self.fit_x0,
             fit_Rw=bool(self.fit_Rw),
             fit_Rv=bool(self.fit_Rv),
+            batch_size=self.batch_size,
+            generator=self._generator(torch.device("cpu")),
         )
 
     def _particles(self, iteration: int | None = None) -> int:

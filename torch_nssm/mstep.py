@@ -146,12 +146,19 @@ def fit_weighted_regression(
     optimizer: str = "lbfgs",
     max_iter: int = 20,
     learning_rate: float = 1e-2,
+    batch_size: int | None = None,
+    patience: int = 2,
+    generator: torch.Generator | None = None,
 ) -> float:
     """Update the free parameters of ``module`` to decrease :func:`weighted_loss`.
 
     Uses the module's ``solve_weighted_least_squares`` when it has one; otherwise LBFGS (strong
-    Wolfe line search, ``max_iter`` iterations) or ``max_iter`` Adam steps.  If the loss got worse
-    or non-finite the previous parameters are restored (NOTES §7), so the step never harms.
+    Wolfe line search, ``max_iter`` iterations) or Adam: ``max_iter`` full-batch steps, or, with
+    ``batch_size``, up to ``max_iter`` epochs of minibatch steps over the shuffled rows with early
+    stopping (the full weighted loss is checked after each epoch; training stops after
+    ``patience`` epochs without improvement and the best parameters are kept) — the M-step for
+    neural networks, a generalised EM step.  If the loss got worse or non-finite the previous
+    parameters are restored (NOTES §7), so the step never harms.
 
     Returns
     -------
@@ -193,6 +200,8 @@ def fit_weighted_regression(
             for p in params:
                 p.grad = None
             return before
+    elif optimizer == "adam" and batch_size is not None:
+        _minibatch_adam(module, params, rows, max_iter, learning_rate, batch_size, patience, generator)
     elif optimizer == "adam":
         opt = torch.optim.Adam(params, lr=learning_rate)
         for _ in range(max_iter):
@@ -210,6 +219,39 @@ def fit_weighted_regression(
         module.load_state_dict(backup)
         return before
     return after
+
+
+def _row_subset(rows: RegressionRows, idx: Tensor) -> RegressionRows:
+    precision = rows.precision if rows.precision.dim() == 2 else rows.precision[idx]
+    return RegressionRows(rows.x[idx], rows.u[idx], rows.target[idx], rows.weight[idx], precision)
+
+
+def _minibatch_adam(module, params, rows, epochs, lr, batch_size, patience, generator) -> None:
+    """Adam over shuffled minibatches of the rows, early-stopped on the full weighted loss."""
+    opt = torch.optim.Adam(params, lr=lr)
+    n = rows.weight.numel()
+    with torch.no_grad():
+        best = float(weighted_loss(module, rows))
+    best_state, bad = copy.deepcopy(module.state_dict()), 0
+    for _ in range(epochs):
+        order = torch.randperm(n, generator=generator).to(rows.weight.device)
+        for start in range(0, n, batch_size):
+            batch = _row_subset(rows, order[start : start + batch_size])
+            opt.zero_grad()
+            loss = weighted_loss(module, batch)
+            if not bool(torch.isfinite(loss)):
+                break
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            current = float(weighted_loss(module, rows))
+        if current < best:
+            best, best_state, bad = current, copy.deepcopy(module.state_dict()), 0
+        else:
+            bad += 1
+            if bad >= patience:
+                break
+    module.load_state_dict(best_state)
 
 
 class _NonFiniteLoss(ArithmeticError):
