@@ -5,7 +5,7 @@
 (robust to outliers) by EM with a particle smoother (Liu & Yang, Neurocomputing 2019).
 """
 
-from . import datasets, models, plotting
+from . import datasets, models, neural, plotting
 from .batch import fit_independent
 from .estimator import RobustNSSMEstimator
 from .filtering import NumericalError
@@ -20,6 +20,7 @@ __all__ = [
     "fit_independent",
     "datasets",
     "models",
+    "neural",
     "plotting",
 ]
 __version__ = "0.1.0"
