@@ -203,8 +203,29 @@ class _NeuralBlock(nn.Module):
     def extra_repr(self) -> str:
         return f"nx={self.nx}, nu={self.nu}"
 
+    def _add_step_network(
+        self, hidden, activation, last_layer_scale, out_scale, random_state, dtype, device
+    ) -> None:
+        """The state-increment network of the transitions: ``out_scale * MLP([x_norm, u_norm])``
+        with a last layer of weight scale ``last_layer_scale`` (0: starts at exactly zero), seeded
+        by ``random_state`` without touching torch's global random state."""
+        self.hidden = _check_hidden(hidden)
+        self.activation = activation
+        if not last_layer_scale >= 0:
+            raise ValueError(f"last_layer_scale must be >= 0, got {last_layer_scale!r}")
+        out = self.x_scale if out_scale is None else out_scale
+        self.register_buffer("out_scale", _positive_vector(out, self.nx, "out_scale", dtype, device))
+        with torch.random.fork_rng(devices=[]):
+            if random_state is not None:
+                torch.manual_seed(int(random_state))
+            self.net = _build_mlp(
+                self.nx + self.nu, self.nx, self.hidden, activation, last_layer_scale, dtype, device
+            )
+
 
 # ---------------------------------------------------------------------- the blocks
+
+
 class MLPTransition(_NeuralBlock):
     """Residual MLP transition ``f(x, u) = x + out_scale * MLP([x_norm, u_norm])``.
 
@@ -274,18 +295,7 @@ class MLPTransition(_NeuralBlock):
         super().__init__(
             nx, nu, x_mean=x_mean, x_scale=x_scale, u_mean=u_mean, u_scale=u_scale, dtype=dtype, device=device
         )
-        self.hidden = _check_hidden(hidden)
-        self.activation = activation
-        if not last_layer_scale >= 0:
-            raise ValueError(f"last_layer_scale must be >= 0, got {last_layer_scale!r}")
-        out = self.x_scale if out_scale is None else out_scale
-        self.register_buffer("out_scale", _positive_vector(out, self.nx, "out_scale", dtype, device))
-        with torch.random.fork_rng(devices=[]):
-            if random_state is not None:
-                torch.manual_seed(int(random_state))
-            self.net = _build_mlp(
-                self.nx + self.nu, self.nx, self.hidden, activation, last_layer_scale, dtype, device
-            )
+        self._add_step_network(hidden, activation, last_layer_scale, out_scale, random_state, dtype, device)
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         """Next-state mean, shape ``(..., nx)`` (leading dimensions of ``x`` and ``u`` broadcast)."""
@@ -513,22 +523,11 @@ class GreyBoxTransition(_NeuralBlock):
         super().__init__(
             nx, nu, x_mean=x_mean, x_scale=x_scale, u_mean=u_mean, u_scale=u_scale, dtype=dtype, device=device
         )
-        self.hidden = _check_hidden(hidden)
-        self.activation = activation
-        if not last_layer_scale >= 0:
-            raise ValueError(f"last_layer_scale must be >= 0, got {last_layer_scale!r}")
         self.physical = physical.to(dtype=dtype, device=device)
         if freeze_physical:
             for prm in self.physical.parameters():
                 prm.requires_grad_(False)
-        out = self.x_scale if out_scale is None else out_scale
-        self.register_buffer("out_scale", _positive_vector(out, self.nx, "out_scale", dtype, device))
-        with torch.random.fork_rng(devices=[]):
-            if random_state is not None:
-                torch.manual_seed(int(random_state))
-            self.net = _build_mlp(
-                self.nx + self.nu, self.nx, self.hidden, activation, last_layer_scale, dtype, device
-            )
+        self._add_step_network(hidden, activation, last_layer_scale, out_scale, random_state, dtype, device)
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         """Next-state mean, shape ``(..., nx)``."""
