@@ -43,8 +43,7 @@ def _to_tensor(value, name: str, dtype: torch.dtype, device: torch.device) -> Te
             if isinstance(value, (list, tuple)):
                 hint = "; several records of different lengths go in a list of numpy arrays"
             raise TypeError(
-                f"{name} must be array-like of real numbers, got {type(value).__name__} "
-                f"({exc}){hint}"
+                f"{name} must be array-like of real numbers, got {type(value).__name__} ({exc}){hint}"
             ) from exc
         t = torch.from_numpy(arr)
     if not (t.is_floating_point() or t.dtype in (torch.int32, torch.int64, torch.bool)):
@@ -111,9 +110,7 @@ def as_sequence_list(
         were given (a list) rather than one.
     """
     if y is None and require_y:
-        raise ValueError(
-            "y is required: this estimator requires y to be passed, but the target y is None"
-        )
+        raise ValueError("y is required: this estimator requires y to be passed, but the target y is None")
     multi = is_sequence_list(y) if y is not None else is_sequence_list(u)
     if multi:
         ys = list(y) if y is not None else None
@@ -123,13 +120,9 @@ def as_sequence_list(
         elif is_sequence_list(u):
             us = list(u)
             if len(us) != n_seq:
-                raise ValueError(
-                    f"u and y must hold the same number of records, got {len(us)} and {n_seq}"
-                )
+                raise ValueError(f"u and y must hold the same number of records, got {len(us)} and {n_seq}")
         else:
-            raise ValueError(
-                "y is a list of records, so u must be a list of as many arrays (or None)"
-            )
+            raise ValueError("y is a list of records, so u must be a list of as many arrays (or None)")
     else:
         if y is not None and is_sequence_list(u):
             raise ValueError("u is a list of records, so y must be a list of as many arrays")
@@ -141,9 +134,7 @@ def as_sequence_list(
         if ys is not None:
             yb = _as_2d(_to_tensor(ys[b], f"y{tag}", dtype, device), f"y{tag}")
             if yb.shape[0] < 2:
-                raise ValueError(
-                    f"y{tag} must have at least 2 samples, got {yb.shape[0]} sample(s)"
-                )
+                raise ValueError(f"y{tag} must have at least 2 samples, got {yb.shape[0]} sample(s)")
             if torch.isinf(yb).any():
                 raise ValueError(f"y{tag} contains infinite values (use NaN for missing outputs)")
             if torch.isnan(yb).all():
@@ -155,9 +146,7 @@ def as_sequence_list(
                 )
         if us[b] is None:
             if n_inputs not in (None, 0):
-                raise ValueError(
-                    f"u is required: the model was fitted with {n_inputs} input columns"
-                )
+                raise ValueError(f"u is required: the model was fitted with {n_inputs} input columns")
             if yb is None:
                 raise ValueError(
                     "u is required when y is not given (for a model without input pass "
@@ -178,8 +167,7 @@ def as_sequence_list(
             if n_inputs is not None and ub.shape[1] != n_inputs:
                 hint = ""
                 if raw.dim() == 1:
-                    hint = (f"; a 1-D u is one input column: Reshape your data to "
-                            f"(n_samples, {n_inputs})")
+                    hint = f"; a 1-D u is one input column: Reshape your data to (n_samples, {n_inputs})"
                 raise ValueError(
                     f"u{tag} has {ub.shape[1]} input columns, expected {n_inputs} "
                     f"(the model's number of inputs){hint}"
@@ -211,9 +199,7 @@ def check_covariance(value, name: str, dim: int, *, dtype, device) -> Tensor:
         t = t.reshape(()) * torch.eye(dim, dtype=dtype, device=device)
     elif t.dim() == 1:
         if t.numel() != dim:
-            raise ValueError(
-                f"{name} as a vector is a diagonal and must have {dim} entries, got {t.numel()}"
-            )
+            raise ValueError(f"{name} as a vector is a diagonal and must have {dim} entries, got {t.numel()}")
         t = torch.diag(t)
     if t.shape != (dim, dim):
         raise ValueError(f"{name} must be a ({dim}, {dim}) matrix, got shape {tuple(t.shape)}")
@@ -227,15 +213,11 @@ def check_covariance(value, name: str, dim: int, *, dtype, device) -> Tensor:
     return t
 
 
-def check_positive(
-    value, name: str, *, integer: bool = False, minimum: float = 0.0, inclusive: bool = False
-):
+def check_positive(value, name: str, *, integer: bool = False, minimum: float = 0.0, inclusive: bool = False):
     """A real (or integer) number ``> minimum`` (``>=`` when ``inclusive``)."""
     kind = numbers.Integral if integer else numbers.Real
     if isinstance(value, bool) or not isinstance(value, kind):
-        raise TypeError(
-            f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}"
-        )
+        raise TypeError(f"{name} must be {'an integer' if integer else 'a number'}, got {value!r}")
     ok = value >= minimum if inclusive else value > minimum
     if not ok or (not integer and np.isnan(value)):
         op = ">=" if inclusive else ">"
@@ -268,21 +250,16 @@ def check_device(device) -> torch.device:
     if dev.type == "mps" and not torch.backends.mps.is_available():
         raise ValueError(f"device {device!r} is not available on this machine")
     if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        raise ValueError(
-            f"device {device!r} is not available: {torch.cuda.device_count()} CUDA device(s)"
-        )
+        raise ValueError(f"device {device!r} is not available: {torch.cuda.device_count()} CUDA device(s)")
     return dev
 
 
-def check_module_shapes(
-    f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *, dtype, device
-) -> None:
+def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *, dtype, device) -> None:
     """Call ``f`` and ``g`` once on a small batch and check their output shapes."""
     for name, module in (("f", f), ("g", g)):
         if not isinstance(module, nn.Module):
             raise TypeError(
-                f"{name} must be a torch.nn.Module called as {name}(x, u), "
-                f"got {type(module).__name__}"
+                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(module).__name__}"
             )
     x = torch.zeros(3, nx, dtype=dtype, device=device)
     u = torch.zeros(3, nu, dtype=dtype, device=device)

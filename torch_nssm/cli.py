@@ -24,8 +24,11 @@ def _demo_parser(sub) -> None:
 
 def _reproduce_parser(sub) -> None:
     p = sub.add_parser("reproduce", help="regenerate the paper's Section 4 figures and tables")
-    p.add_argument("experiment", choices=["fig2", "gopaluni", "table1", "manipulator", "all"],
-                   help="which experiment (all: every one in turn)")
+    p.add_argument(
+        "experiment",
+        choices=["fig2", "gopaluni", "table1", "manipulator", "all"],
+        help="which experiment (all: every one in turn)",
+    )
     p.add_argument("--fast", action="store_true", help="tiny settings (seconds), e.g. for CI")
     p.add_argument("--out", default="reproduction", help="output folder (default: ./reproduction)")
     p.add_argument("--seed", type=int, default=0, help="seed of the data and the particle methods")

@@ -817,9 +817,7 @@ def make_manipulator(
 
     t = dt * np.arange(n)
     force = manipulator_force(t, constants)
-    rho = float(
-        np.abs(np.linalg.eigvals(manipulator_transition_matrix(force, dt, th, constants))).max()
-    )
+    rho = float(np.abs(np.linalg.eigvals(manipulator_transition_matrix(force, dt, th, constants))).max())
     if rho > 1.0:
         warnings.warn(
             f"the forward-Euler step is unstable for this record (spectral radius {rho:.3f} > 1); "
@@ -880,9 +878,7 @@ def _read_silverbox_csv(path: str, mtime_ns: int) -> np.ndarray:
     try:
         cols = (names.index("V1"), names.index("V2"))
     except ValueError:
-        raise ValueError(
-            f"{path}: expected columns 'V1' and 'V2' in the header, got {names}"
-        ) from None
+        raise ValueError(f"{path}: expected columns 'V1' and 'V2' in the header, got {names}") from None
     data = np.loadtxt(path, delimiter=",", skiprows=1, usecols=cols, dtype=np.float64, ndmin=2)
     data.setflags(write=False)
     return data
@@ -925,9 +921,7 @@ def load_silverbox(
     if part not in ("multisine", "arrow", "all"):
         raise ValueError(f"part must be 'multisine', 'arrow' or 'all', got {part!r}")
     if part != "all" and file != "SNLS80mV.csv":
-        raise ValueError(
-            f"part={part!r} is defined for SNLS80mV.csv only; use part='all' for {file!r}"
-        )
+        raise ValueError(f"part={part!r} is defined for SNLS80mV.csv only; use part='all' for {file!r}")
     if path is not None:
         dirs = [Path(path)]
     else:

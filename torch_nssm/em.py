@@ -56,16 +56,6 @@ class EStepOutput:
         )
 
     @property
-    def smoothing_weights(self) -> Tensor:
-        """``W_{k|N}``, shape (T, B, L)."""
-        return torch.exp(self.smoother.log_weights)
-
-    @property
-    def outlier_weights(self) -> Tensor:
-        """``E[lam_k | y]`` per sample, shape (T, B): near 0 marks an outlier."""
-        return (self.smoothing_weights * self.e_lam).sum(-1)
-
-    @property
     def log_likelihood(self) -> Tensor:
         """Particle estimate of the log-likelihood of each sequence, shape (B,)."""
         return self.filter.log_likelihood
@@ -80,12 +70,7 @@ def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutpu
         x = filt.particles.transpose(0, 1).reshape(B, T * L, nx)
         u = data.u.transpose(0, 1).unsqueeze(2).expand(B, T, L, data.u.shape[-1]).reshape(B, T * L, -1)
         g = model.g(x, u).reshape(B, T, L, -1).transpose(0, 1)
-        resid = data.y.unsqueeze(2) - g
-        resid = torch.where(scale.mask.unsqueeze(2), resid, torch.zeros_like(resid))
-        if resid.shape[-1] == 1:
-            z = resid * scale.chol_inv[..., 0].unsqueeze(2)
-        else:
-            z = torch.einsum("tbij,tblj->tbli", scale.chol_inv, resid)
+        z = scale.whiten(data.y.unsqueeze(2) - g)
         delta2 = (z * z).sum(-1)
         dof = model.per_sequence("dof", B).view(1, B, 1)
         return latent_scale_expectations(delta2, scale.n_obs.unsqueeze(-1), dof)

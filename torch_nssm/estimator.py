@@ -550,7 +550,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
-        ow = _masked_outlier_weights(est, data)
+        ow = _outlier_weights(est.smoother.log_weights, est.e_lam, data)
         self.outlier_weights_ = ow if multi else ow[0]
         self.log_likelihood_ = float(est.log_likelihood.sum())
         self.n_iter_ = n_done
@@ -839,10 +839,6 @@ def default_rv_init(y: np.ndarray) -> torch.Tensor:
     s2 = (1.4826 * np.nanmedian(np.abs(y - med), axis=0)) ** 2
     var = np.where(s2 > 0, s2, np.nanvar(y, axis=0))
     return torch.from_numpy(0.02 * np.where(var > 0, var, 1.0))
-
-
-def _masked_outlier_weights(est: EStepOutput, data: SequenceBatch) -> list[np.ndarray]:
-    return _outlier_weights(est.smoother.log_weights, est.e_lam, data)
 
 
 def _record(history: dict, model: StateSpaceModel, ll: float) -> None:

@@ -16,7 +16,7 @@ from .model import SequenceBatch, StateSpaceModel
 from .noise import MaskedScale, masked_scale, student_t_log_prob
 from .resampling import effective_sample_size, get_resampler
 
-__all__ = ["FilterOutput", "particle_filter", "observation_log_density", "NumericalError"]
+__all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
 
 
 class NumericalError(FloatingPointError):
@@ -63,37 +63,11 @@ class FilterOutput:
         )
 
 
-def observation_log_density(
-    model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor
-) -> tuple[Tensor, Tensor]:
-    """Log-density of ``y_k`` for each particle, and the squared Mahalanobis residual norm.
-
-    Parameters
-    ----------
-    x : Tensor, shape (B, L, nx)
-
-    Returns
-    -------
-    (Tensor, Tensor)
-        ``log p(y_k | x)`` and ``delta2``, both ``(B, L)``; zero where ``y_k`` is missing.
-    """
-    B = data.n_sequences
-    delta2 = _mahalanobis(model, data, scale, k, x)
-    dof = model.per_sequence("dof", B).unsqueeze(-1)
-    logp = student_t_log_prob(delta2, scale.logdet[k].unsqueeze(-1), scale.n_obs[k].unsqueeze(-1), dof)
-    return logp, delta2
-
-
 def _mahalanobis(
     model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor
 ) -> Tensor:
     """Squared whitened residual norms ``delta2`` of ``y_k`` for particles ``x`` (B, L, nx)."""
-    resid = data.y[k].unsqueeze(-2) - model.observation(x, data.u[k])
-    resid = torch.where(scale.mask[k].unsqueeze(-2), resid, 0.0)
-    if resid.shape[-1] == 1:
-        z = resid * scale.chol_inv[k].unsqueeze(-2)[..., 0]
-    else:
-        z = torch.einsum("bij,blj->bli", scale.chol_inv[k], resid)
+    z = scale.whiten(data.y[k].unsqueeze(-2) - model.observation(x, data.u[k]), k)
     return (z * z).sum(-1)
 
 
@@ -101,13 +75,8 @@ def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tu
     """Per-(T, B) terms of the log-density, ``logp = const - coef * log1p(delta2 / nu)`` for a t,
     ``const - delta2 / 2`` for a Gaussian (signalled by ``nu = inf``): computed once, not per step."""
     dof = model.per_sequence("dof", B).unsqueeze(0)  # (1, B)
-    n, logdet = scale.n_obs, scale.logdet
-    if bool(torch.isinf(dof).all()):
-        const = -0.5 * (n * math.log(2.0 * math.pi) + logdet)
-        return const, torch.full_like(const, 0.5), dof.expand_as(const)
-    zero = torch.zeros_like(logdet)
-    const = student_t_log_prob(zero, logdet, n, dof)
-    return const, 0.5 * (dof + n), dof.expand_as(const)
+    const = student_t_log_prob(torch.zeros_like(scale.logdet), scale.logdet, scale.n_obs, dof)
+    return const, 0.5 * (dof + scale.n_obs), dof.expand_as(const)
 
 
 def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator=None) -> Tensor:

@@ -187,9 +187,7 @@ class ManipulatorObservation(nn.Module):
         return x[..., 2:4]
 
 
-def true_model(
-    data: SimulatedData, *, dtype: torch.dtype = torch.float64
-) -> tuple[nn.Module, nn.Module]:
+def true_model(data: SimulatedData, *, dtype: torch.dtype = torch.float64) -> tuple[nn.Module, nn.Module]:
     """The ``(f, g)`` modules of a simulated data set, at its true parameters.
 
     Parameters
@@ -216,8 +214,6 @@ def true_model(
         return PaperTransition(p["a"], p["b"], dtype=dtype), PaperObservation(p["c"], dtype=dtype)
     if data.name == "manipulator":
         constants = ManipulatorConstants(**p["constants"])
-        f = ManipulatorTransition(
-            p["theta1"], p["theta2"], dt=p["dt"], constants=constants, dtype=dtype
-        )
+        f = ManipulatorTransition(p["theta1"], p["theta2"], dt=p["dt"], constants=constants, dtype=dtype)
         return f, ManipulatorObservation()
     raise ValueError(f"true_model: unknown data set name {data.name!r}")

@@ -60,10 +60,14 @@ class MaskedScale:
             self.chol_inv[:, index], self.logdet[:, index], self.n_obs[:, index], self.mask[:, index]
         )
 
-    def whiten(self, resid: Tensor) -> Tensor:
-        """Whiten residuals of shape ``(..., L, p)`` (leading dims as the mask's, plus particles)."""
-        resid = torch.where(self.mask.unsqueeze(-2), resid, torch.zeros_like(resid))
-        return torch.einsum("...ij,...lj->...li", self.chol_inv, resid)
+    def whiten(self, resid: Tensor, k: int | None = None) -> Tensor:
+        """Whiten residuals of shape ``(..., L, p)`` (leading dims as the mask's, plus particles);
+        with ``k``, residuals ``(B, L, p)`` of time step ``k`` of a time-major scale."""
+        chol_inv, mask = (self.chol_inv, self.mask) if k is None else (self.chol_inv[k], self.mask[k])
+        resid = torch.where(mask.unsqueeze(-2), resid, torch.zeros_like(resid))
+        if resid.shape[-1] == 1:  # no batch of 1x1 products
+            return resid * chol_inv[..., 0].unsqueeze(-2)
+        return torch.einsum("...ij,...lj->...li", chol_inv, resid)
 
 
 def masked_scale(R: Tensor, mask: Tensor) -> MaskedScale:

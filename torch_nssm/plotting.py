@@ -97,9 +97,7 @@ def plot_history(est, params=None, true_values=None, ax=None):
     true_values = dict(true_values or {})
     bad = [k for k in true_values if k not in params]
     if bad:
-        raise ValueError(
-            f"true_values has {bad}, which are not among the plotted params {params}"
-        )
+        raise ValueError(f"true_values has {bad}, which are not among the plotted params {params}")
     single = ax is not None and not isinstance(ax, (Sequence, np.ndarray))
     if ax is None:
         plt = _pyplot()
@@ -107,7 +105,7 @@ def plot_history(est, params=None, true_values=None, ax=None):
         nrows = -(-len(params) // ncols)
         fig, grid = plt.subplots(nrows, ncols, figsize=(4.0 * ncols, 2.8 * nrows), squeeze=False)
         axes = grid.ravel()
-        for extra in axes[len(params):]:
+        for extra in axes[len(params) :]:
             fig.delaxes(extra)
         axes = axes[: len(params)]
     elif single:
@@ -123,8 +121,9 @@ def plot_history(est, params=None, true_values=None, ax=None):
             if truth is not None:
                 t = np.asarray(truth, dtype=float)
                 t = t.reshape(()) if t.size == 1 else t[idx]
-                a.axhline(float(t), color=line.get_color(), linestyle="--", linewidth=1.0,
-                          label=f"{label} (true)")
+                a.axhline(
+                    float(t), color=line.get_color(), linestyle="--", linewidth=1.0, label=f"{label} (true)"
+                )
         a.set_xlabel("iteration")
         if not single:
             a.set_title(name)
@@ -176,8 +175,9 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
     for j in range(y.shape[1]):
         ax.plot(t, y[:, j], color="0.8", linewidth=0.8, zorder=1)
         ok = np.isfinite(w)
-        scatter = ax.scatter(t[ok], y[ok, j], c=np.clip(w[ok], 0.0, 1.0), cmap=cmap, vmin=0.0,
-                             vmax=1.0, s=14, zorder=2)
+        scatter = ax.scatter(
+            t[ok], y[ok, j], c=np.clip(w[ok], 0.0, 1.0), cmap=cmap, vmin=0.0, vmax=1.0, s=14, zorder=2
+        )
         if (~ok).any():
             ax.scatter(t[~ok], y[~ok, j], color="0.6", s=10, zorder=2)
     if true_outliers is not None:
@@ -185,8 +185,16 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
         if m.shape[0] != n:
             raise ValueError(f"true_outliers must have {n} entries, got {m.shape[0]}")
         for j in range(y.shape[1]):
-            ax.scatter(t[m], y[m, j], s=60, facecolors="none", edgecolors="k", linewidths=0.8,
-                       zorder=3, label="true outliers" if j == 0 else None)
+            ax.scatter(
+                t[m],
+                y[m, j],
+                s=60,
+                facecolors="none",
+                edgecolors="k",
+                linewidths=0.8,
+                zorder=3,
+                label="true outliers" if j == 0 else None,
+            )
         ax.legend(fontsize="small", loc="best")
     if scatter is not None:
         ax.figure.colorbar(scatter, ax=ax, label="outlier weight E[λ | y]")
@@ -195,8 +203,9 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
     return ax
 
 
-def plot_states(estimate: StateEstimate, x_true=None, ax=None, level: float = 0.9, *,
-                components=None, t=None):
+def plot_states(
+    estimate: StateEstimate, x_true=None, ax=None, level: float = 0.9, *, components=None, t=None
+):
     """Filtered or smoothed state means with a central credible band, against true states.
 
     Parameters
@@ -220,8 +229,7 @@ def plot_states(estimate: StateEstimate, x_true=None, ax=None, level: float = 0.
     """
     if not isinstance(estimate, StateEstimate):
         raise TypeError(
-            "estimate must be a StateEstimate (from smooth or filter), "
-            f"got {type(estimate).__name__}"
+            f"estimate must be a StateEstimate (from smooth or filter), got {type(estimate).__name__}"
         )
     if not 0.0 <= level < 1.0:
         raise ValueError(f"level must lie in [0, 1), got {level!r}")
@@ -246,11 +254,19 @@ def plot_states(estimate: StateEstimate, x_true=None, ax=None, level: float = 0.
     for c in comps:
         (line,) = ax.plot(t, mean[:, c], label=f"x[{c}] {estimate.kind} mean")
         if lo is not None:
-            ax.fill_between(t, lo[:, c], hi[:, c], color=line.get_color(), alpha=0.25,
-                            linewidth=0, label=f"{level:.0%} band")
+            ax.fill_between(
+                t,
+                lo[:, c],
+                hi[:, c],
+                color=line.get_color(),
+                alpha=0.25,
+                linewidth=0,
+                label=f"{level:.0%} band",
+            )
         if x_true is not None:
-            ax.plot(t, x_true[:, c], color=line.get_color(), linestyle="--", linewidth=1.0,
-                    label=f"x[{c}] true")
+            ax.plot(
+                t, x_true[:, c], color=line.get_color(), linestyle="--", linewidth=1.0, label=f"x[{c}] true"
+            )
     ax.set_xlabel(xlabel)
     ax.set_ylabel("state")
     ax.legend(fontsize="small", loc="best")

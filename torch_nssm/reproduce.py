@@ -183,22 +183,47 @@ def fig2(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bo
     """
     torch.set_num_threads(1)
     out = _out(out_dir)
-    s = dict(n_samples=150, n_iter=10, n_particles=50, n_particles_final=None, average_last=0) if fast else \
-        dict(n_samples=500, n_iter=200, n_particles=100, n_particles_final=300, average_last=20)
-    settings = dict(experiment="fig2", fast=fast, seed=seed, outlier_fraction=0.1, outlier_range=(-5, 5),
-                    init=PAPER_INIT, smoother="ffbsm", noise="student-t", dof_init=5.0, **s)
+    s = (
+        dict(n_samples=150, n_iter=10, n_particles=50, n_particles_final=None, average_last=0)
+        if fast
+        else dict(n_samples=500, n_iter=200, n_particles=100, n_particles_final=300, average_last=20)
+    )
+    settings = dict(
+        experiment="fig2",
+        fast=fast,
+        seed=seed,
+        outlier_fraction=0.1,
+        outlier_range=(-5, 5),
+        init=PAPER_INIT,
+        smoother="ffbsm",
+        noise="student-t",
+        dof_init=5.0,
+        **s,
+    )
     data = make_paper_example(n_samples=s["n_samples"], outlier_fraction=0.1, random_state=seed)
-    est = _paper_estimator("student-t", s["n_particles"], s["n_iter"], seed,
-                           n_particles_final=s["n_particles_final"], average_last=s["average_last"],
-                           verbose=int(progress))
+    est = _paper_estimator(
+        "student-t",
+        s["n_particles"],
+        s["n_iter"],
+        seed,
+        n_particles_final=s["n_particles_final"],
+        average_last=s["average_last"],
+        verbose=int(progress),
+    )
     est, secs = _fit(est, data.u, data.y)
     settings["seconds"] = round(secs, 1)
     h = est.history_
     plt = _pyplot()
     fig, axes = plt.subplots(2, 3, figsize=(11, 5.5), sharex=True)
     truth = data.params
-    panels = [("f.a", "a", truth["a"]), ("f.b", "b", truth["b"]), ("g.c", "c", truth["c"]),
-              ("Rw", "Rw", truth["Rw"]), ("Rv", "Rv (Student-t scale)", None), ("dof", "dof r", None)]
+    panels = [
+        ("f.a", "a", truth["a"]),
+        ("f.b", "b", truth["b"]),
+        ("g.c", "c", truth["c"]),
+        ("Rw", "Rw", truth["Rw"]),
+        ("Rv", "Rv (Student-t scale)", None),
+        ("dof", "dof r", None),
+    ]
     for ax, (key, label, true) in zip(axes.ravel(), panels):
         ax.plot(_scalar(h[key]), lw=1.2)
         if true is not None:
@@ -210,23 +235,32 @@ def fig2(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bo
     axes[1, 2].set_yscale("log")
     fig.suptitle(f"Fig. 2: robust EM, N={s['n_samples']}, 10% outliers, init a=b=c=0.5")
     files = [_savefig(fig, out / "fig2.png")]
-    final = {"a": est.f_.a.item(), "b": est.f_.b.item(), "c": est.g_.c.item(),
-             "Rw": float(est.Rw_[0, 0]), "Rv": float(est.Rv_[0, 0]), "dof": float(est.dof_)}
+    final = {
+        "a": est.f_.a.item(),
+        "b": est.f_.b.item(),
+        "c": est.g_.c.item(),
+        "Rw": float(est.Rw_[0, 0]),
+        "Rv": float(est.Rv_[0, 0]),
+        "dof": float(est.dof_),
+    }
     keys = {"a": "f.a", "b": "f.b", "c": "g.c", "Rw": "Rw", "Rv": "Rv", "dof": "dof"}
     rows = []
     for name, val in final.items():
         true = truth.get(name) if name != "Rv" else None
         true_s = "-" if true is None else float(np.ravel(true)[0])
         rows.append([name, true_s, float(val), _iterations_to(_scalar(h[keys[name]]), val)])
-    note = (f"N = {s['n_samples']}, {s['n_iter']} EM iterations, {s['n_particles']}"
-            f"{'->' + str(s['n_particles_final']) if s['n_particles_final'] else ''} particles (FFBSm), "
-            f"init a=b=c=0.5, seed {seed}, {secs:.0f} s. Rv is the Student-t scale, not a variance. "
-            "'iterations' = first iteration after which the estimate stays within 1% of its final value.")
+    note = (
+        f"N = {s['n_samples']}, {s['n_iter']} EM iterations, {s['n_particles']}"
+        f"{'->' + str(s['n_particles_final']) if s['n_particles_final'] else ''} particles (FFBSm), "
+        f"init a=b=c=0.5, seed {seed}, {secs:.0f} s. Rv is the Student-t scale, not a variance. "
+        "'iterations' = first iteration after which the estimate stays within 1% of its final value."
+    )
     table = _write_table(out, "fig2", ["parameter", "true", "estimate", "iterations to 1%"], rows, note)
     files += [str(out / "fig2.md"), str(out / "fig2.csv")]
     _write_settings(out, "fig2", settings)
-    return dict(estimator=est, data=data, final=final, table=table, files=files, settings=settings,
-                seconds=secs)
+    return dict(
+        estimator=est, data=data, final=final, table=table, files=files, settings=settings, seconds=secs
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -254,10 +288,21 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
     """
     torch.set_num_threads(1)
     out = _out(out_dir)
-    s = dict(n_samples=150, n_iter=8, n_particles=50, average_last=0) if fast else \
-        dict(n_samples=400, n_iter=80, n_particles=100, average_last=10)
-    settings = dict(experiment="gopaluni", fast=fast, seed=seed, outlier_fractions=(0.0, 0.05),
-                    outlier_range=(-6, 6), init=PAPER_INIT, smoother="ffbsm", **s)
+    s = (
+        dict(n_samples=150, n_iter=8, n_particles=50, average_last=0)
+        if fast
+        else dict(n_samples=400, n_iter=80, n_particles=100, average_last=10)
+    )
+    settings = dict(
+        experiment="gopaluni",
+        fast=fast,
+        seed=seed,
+        outlier_fractions=(0.0, 0.05),
+        outlier_range=(-6, 6),
+        init=PAPER_INIT,
+        smoother="ffbsm",
+        **s,
+    )
     fits, secs_all, rows = {}, {}, []
     jobs = [(frac, noise) for frac in (0.0, 0.05) for noise in ("gaussian", "student-t")]
     t_start = time.perf_counter()
@@ -268,8 +313,18 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
         fits[(frac, noise)], secs_all[(frac, noise)] = est, secs
         a, b, c = est.f_.a.item(), est.f_.b.item(), est.g_.c.item()
         err = float(np.linalg.norm(np.array([a, b, c]) - np.array([0.9, 1.0, 1.0])))
-        rows.append([f"{frac:.0%}", "Gaussian (Gopaluni)" if noise == "gaussian" else "robust (Student-t)",
-                     a, b, c, float(est.Rv_[0, 0]), err, round(secs, 1)])
+        rows.append(
+            [
+                f"{frac:.0%}",
+                "Gaussian (Gopaluni)" if noise == "gaussian" else "robust (Student-t)",
+                a,
+                b,
+                c,
+                float(est.Rv_[0, 0]),
+                err,
+                round(secs, 1),
+            ]
+        )
     total = time.perf_counter() - t_start
     settings["seconds"] = round(total, 1)
     plt = _pyplot()
@@ -278,8 +333,11 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
         for j, (key, label, true) in enumerate((("f.a", "a", 0.9), ("f.b", "b", 1.0), ("g.c", "c", 1.0))):
             ax = axes[i, j]
             for noise, style in (("gaussian", "-"), ("student-t", "-")):
-                ax.plot(_scalar(fits[(frac, noise)].history_[key]), style,
-                        label="Gaussian" if noise == "gaussian" else "robust")
+                ax.plot(
+                    _scalar(fits[(frac, noise)].history_[key]),
+                    style,
+                    label="Gaussian" if noise == "gaussian" else "robust",
+                )
             ax.axhline(true, ls="--", color="k", lw=0.8)
             ax.set_title(f"{label}, {frac:.0%} outliers")
             ax.grid(alpha=0.3)
@@ -288,11 +346,14 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
         ax.set_xlabel("EM iteration")
     fig.suptitle(f"Figs. 4/6: Gaussian vs robust EM, N={s['n_samples']}")
     files = [_savefig(fig, out / "gopaluni.png")]
-    note = (f"N = {s['n_samples']}, {s['n_iter']} EM iterations, {s['n_particles']} particles (FFBSm), "
-            f"init a=b=c=0.5, seed {seed}. error = ||(a,b,c) - (0.9,1,1)||. "
-            "Rv: variance (Gaussian) or Student-t scale (robust).")
-    table = _write_table(out, "gopaluni", ["outliers", "method", "a", "b", "c", "Rv", "error", "seconds"],
-                         rows, note)
+    note = (
+        f"N = {s['n_samples']}, {s['n_iter']} EM iterations, {s['n_particles']} particles (FFBSm), "
+        f"init a=b=c=0.5, seed {seed}. error = ||(a,b,c) - (0.9,1,1)||. "
+        "Rv: variance (Gaussian) or Student-t scale (robust)."
+    )
+    table = _write_table(
+        out, "gopaluni", ["outliers", "method", "a", "b", "c", "Rv", "error", "seconds"], rows, note
+    )
     files += [str(out / "gopaluni.md"), str(out / "gopaluni.csv")]
     _write_settings(out, "gopaluni", settings)
     return dict(fits=fits, table=table, files=files, settings=settings, seconds=total)
@@ -303,8 +364,14 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
 # --------------------------------------------------------------------------------------------
 
 
-def table1(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bool = True,
-           n_sets: int | None = None, n_iter: int | None = None) -> dict:
+def table1(
+    fast: bool = False,
+    out_dir="reproduction",
+    seed: int = 0,
+    progress: bool = True,
+    n_sets: int | None = None,
+    n_iter: int | None = None,
+) -> dict:
     """Table 1: Monte Carlo study with Cauchy measurement noise ``St(0, 0.01, 1)``, N = 1000.
 
     All data sets are fitted in one batched pass (:func:`~torch_nssm.batch.fit_independent`).
@@ -331,18 +398,30 @@ def table1(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: 
     """
     torch.set_num_threads(1)
     out = _out(out_dir)
-    s = dict(n_sets=4, n_samples=300, n_iter=6, n_particles=50, n_avg=3) if fast else \
-        dict(n_sets=100, n_samples=1000, n_iter=30, n_particles=100, n_avg=10)
+    s = (
+        dict(n_sets=4, n_samples=300, n_iter=6, n_particles=50, n_avg=3)
+        if fast
+        else dict(n_sets=100, n_samples=1000, n_iter=30, n_particles=100, n_avg=10)
+    )
     if n_sets is not None:
         s["n_sets"] = int(n_sets)
     if n_iter is not None:
         s["n_iter"] = int(n_iter)
         s["n_avg"] = min(s["n_avg"], max(1, s["n_iter"] // 4))
-    settings = dict(experiment="table1", fast=fast, seed=seed, noise_true="St(0, 0.01, 1) (Cauchy)",
-                    init=PAPER_INIT, smoother="mcmc", batched=True, **s)
+    settings = dict(
+        experiment="table1",
+        fast=fast,
+        seed=seed,
+        noise_true="St(0, 0.01, 1) (Cauchy)",
+        init=PAPER_INIT,
+        smoother="mcmc",
+        batched=True,
+        **s,
+    )
     datas = [make_huang_example(n_samples=s["n_samples"], random_state=seed + i) for i in range(s["n_sets"])]
-    proto = _paper_estimator("student-t", s["n_particles"], s["n_iter"], seed, smoother="mcmc",
-                             verbose=int(progress))
+    proto = _paper_estimator(
+        "student-t", s["n_particles"], s["n_iter"], seed, smoother="mcmc", verbose=int(progress)
+    )
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -352,27 +431,47 @@ def table1(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: 
     keys = ("f.a", "f.b", "g.c")
     hist = np.stack([np.stack([_scalar(e.history_[k]) for k in keys], 1) for e in fits])  # (B, K+1, 3)
     last = hist[:, -1]
-    est = hist[:, -s["n_avg"]:].mean(1)
+    est = hist[:, -s["n_avg"] :].mean(1)
     theta = np.array([0.9, 1.0, 1.0])
     mean, std = est.mean(0), est.std(0, ddof=1) if len(est) > 1 else np.zeros(3)
     bias_norm = float(np.linalg.norm(theta - mean))
     bias_norm_last = float(np.linalg.norm(theta - last.mean(0)))
     # bias norm of the averaged estimates after each iteration (iterations needed for the target)
-    bn_path = np.array([np.linalg.norm(theta - hist[:, max(0, k - s["n_avg"] + 1):k + 1].mean(1).mean(0))
-                        for k in range(hist.shape[1])])
+    bn_path = np.array(
+        [
+            np.linalg.norm(theta - hist[:, max(0, k - s["n_avg"] + 1) : k + 1].mean(1).mean(0))
+            for k in range(hist.shape[1])
+        ]
+    )
     below = np.nonzero(bn_path > 0.010)[0]
     iters_to_target = None if bn_path[-1] > 0.010 else int(below[-1] + 1 if below.size else 0)
     p = PAPER["table1"]
-    rows = [[name, true, f"{p[name][0]:.4f} ± {p[name][1]:.4f}", f"{mean[i]:.4f} ± {std[i]:.4f}",
-             f"{last[:, i].mean():.4f} ± {last[:, i].std(ddof=1) if len(last) > 1 else 0.0:.4f}"]
-            for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0)))]
-    rows.append(["bias norm", 0.0, f"{p['bias_norm']:.4f} (Huang: {p['bias_norm_huang']:.4f})",
-                 f"{bias_norm:.4f}", f"{bias_norm_last:.4f}"])
-    note = (f"{s['n_sets']} data sets (seeds {seed}..{seed + s['n_sets'] - 1}), N = {s['n_samples']}, "
-            f"{s['n_iter']} EM iterations (paper: 250), {s['n_particles']} particles, MCMC smoother, "
-            f"init a=b=c=0.5, batched fit_independent, {secs:.0f} s. 'ours' = mean of the last "
-            f"{s['n_avg']} iterates of each fit; bias norm = ||theta - mean(theta_hat)||. "
-            f"Bias norm <= 0.010 reached after: {iters_to_target} iterations.")
+    rows = [
+        [
+            name,
+            true,
+            f"{p[name][0]:.4f} ± {p[name][1]:.4f}",
+            f"{mean[i]:.4f} ± {std[i]:.4f}",
+            f"{last[:, i].mean():.4f} ± {last[:, i].std(ddof=1) if len(last) > 1 else 0.0:.4f}",
+        ]
+        for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0)))
+    ]
+    rows.append(
+        [
+            "bias norm",
+            0.0,
+            f"{p['bias_norm']:.4f} (Huang: {p['bias_norm_huang']:.4f})",
+            f"{bias_norm:.4f}",
+            f"{bias_norm_last:.4f}",
+        ]
+    )
+    note = (
+        f"{s['n_sets']} data sets (seeds {seed}..{seed + s['n_sets'] - 1}), N = {s['n_samples']}, "
+        f"{s['n_iter']} EM iterations (paper: 250), {s['n_particles']} particles, MCMC smoother, "
+        f"init a=b=c=0.5, batched fit_independent, {secs:.0f} s. 'ours' = mean of the last "
+        f"{s['n_avg']} iterates of each fit; bias norm = ||theta - mean(theta_hat)||. "
+        f"Bias norm <= 0.010 reached after: {iters_to_target} iterations."
+    )
     header = ["parameter", "true", "paper (250 it.)", f"ours (avg last {s['n_avg']})", "ours (last iterate)"]
     table = _write_table(out, "table1", header, rows, note)
     with open(out / "table1_estimates.csv", "w", newline="") as fh:
@@ -394,12 +493,28 @@ def table1(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: 
     axes[3].legend(fontsize=7)
     fig.suptitle(f"Table 1: {s['n_sets']} Monte Carlo runs, Cauchy noise, N={s['n_samples']}")
     fig.tight_layout()
-    files = [_savefig(fig, out / "table1.png"), str(out / "table1.md"), str(out / "table1.csv"),
-             str(out / "table1_estimates.csv")]
+    files = [
+        _savefig(fig, out / "table1.png"),
+        str(out / "table1.md"),
+        str(out / "table1.csv"),
+        str(out / "table1_estimates.csv"),
+    ]
     _write_settings(out, "table1", settings)
-    return dict(fits=fits, estimates=est, last=last, mean=mean, std=std, bias_norm=bias_norm,
-                bias_norm_last=bias_norm_last, bias_norm_path=bn_path, iterations_to_target=iters_to_target,
-                table=table, files=files, settings=settings, seconds=secs)
+    return dict(
+        fits=fits,
+        estimates=est,
+        last=last,
+        mean=mean,
+        std=std,
+        bias_norm=bias_norm,
+        bias_norm_last=bias_norm_last,
+        bias_norm_path=bn_path,
+        iterations_to_target=iters_to_target,
+        table=table,
+        files=files,
+        settings=settings,
+        seconds=secs,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -429,13 +544,24 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
     """
     torch.set_num_threads(1)
     out = _out(out_dir)
-    s = dict(n_samples=150, n_iter=8, n_particles=50, average_last=0) if fast else \
-        dict(n_samples=500, n_iter=150, n_particles=100, average_last=10)
+    s = (
+        dict(n_samples=150, n_iter=8, n_particles=50, average_last=0)
+        if fast
+        else dict(n_samples=500, n_iter=150, n_particles=100, average_last=10)
+    )
     levels = (0.05, 0.10, 0.20, 0.40)
-    settings = dict(experiment="manipulator", fast=fast, seed=seed, outlier_fractions=levels,
-                    init=MANIPULATOR_INIT, Rw_init="generator Rw (diag)", Rv_init="1e-3 I",
-                    x0_cov="10 x true",
-                    smoother="ffbsm", **s)
+    settings = dict(
+        experiment="manipulator",
+        fast=fast,
+        seed=seed,
+        outlier_fractions=levels,
+        init=MANIPULATOR_INIT,
+        Rw_init="generator Rw (diag)",
+        Rv_init="1e-3 I",
+        x0_cov="10 x true",
+        smoother="ffbsm",
+        **s,
+    )
     fits, theta, err, rows, datas = {}, {}, {}, [], {}
     t_start = time.perf_counter()
     for frac in tqdm(levels, desc="manipulator fits", disable=not progress):
@@ -447,7 +573,8 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
             x0_mean=data.params["x0_mean"],
             x0_cov=np.asarray(data.params["x0_cov"]) * 10,
             Rw_init=np.diag(np.asarray(data.params["Rw"], dtype=float).reshape(-1)[:4])
-            if np.ndim(data.params["Rw"]) == 1 else np.asarray(data.params["Rw"]),
+            if np.ndim(data.params["Rw"]) == 1
+            else np.asarray(data.params["Rw"]),
             Rv_init=np.eye(2) * 1e-3,
             n_particles=s["n_particles"],
             n_iter=s["n_iter"],
@@ -463,18 +590,45 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
         it1 = _iterations_to(_scalar(est.history_["f.theta1"]), 1.0, 0.01)
         it2 = _iterations_to(_scalar(est.history_["f.theta2"]), 1.0, 0.01)
         pp = PAPER["table2"][frac]
-        rows.append([f"{frac:.0%}", t1, f"{err[frac][0]:.2f}%", f"{pp[0]:.4f} ({pp[1]:.2f}%)",
-                     t2, f"{err[frac][1]:.2f}%", f"{pp[2]:.4f} ({pp[3]:.2f}%)", f"{it1} / {it2}",
-                     round(secs, 1)])
+        rows.append(
+            [
+                f"{frac:.0%}",
+                t1,
+                f"{err[frac][0]:.2f}%",
+                f"{pp[0]:.4f} ({pp[1]:.2f}%)",
+                t2,
+                f"{err[frac][1]:.2f}%",
+                f"{pp[2]:.4f} ({pp[3]:.2f}%)",
+                f"{it1} / {it2}",
+                round(secs, 1),
+            ]
+        )
     total = time.perf_counter() - t_start
     settings["seconds"] = round(total, 1)
-    note = (f"N = {s['n_samples']}, {s['n_iter']} EM iterations (paper: 200), {s['n_particles']} particles "
-            "(FFBSm), init theta1 = theta2 = 0.8, Rw_init = the generator's Rw, Rv_init = 1e-3 I, "
-            f"seed {seed}, {total:.0f} s. "
-            "error = |theta_hat - 1| / 1 * 100%. 'iterations to 1%' = first iteration after which the "
-            "estimate stays within 1% of the truth (theta1 / theta2; the last iteration + 1 if never).")
-    table = _write_table(out, "table2", ["outliers", "theta1", "error", "paper theta1", "theta2", "error",
-                                         "paper theta2", "iterations to 1%", "seconds"], rows, note)
+    note = (
+        f"N = {s['n_samples']}, {s['n_iter']} EM iterations (paper: 200), {s['n_particles']} particles "
+        "(FFBSm), init theta1 = theta2 = 0.8, Rw_init = the generator's Rw, Rv_init = 1e-3 I, "
+        f"seed {seed}, {total:.0f} s. "
+        "error = |theta_hat - 1| / 1 * 100%. 'iterations to 1%' = first iteration after which the "
+        "estimate stays within 1% of the truth (theta1 / theta2; the last iteration + 1 if never)."
+    )
+    table = _write_table(
+        out,
+        "table2",
+        [
+            "outliers",
+            "theta1",
+            "error",
+            "paper theta1",
+            "theta2",
+            "error",
+            "paper theta2",
+            "iterations to 1%",
+            "seconds",
+        ],
+        rows,
+        note,
+    )
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.5))
     for frac in levels:
@@ -499,8 +653,9 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
     files.append(_savefig(fig, out / "manipulator_outliers.png"))
     files += [str(out / "table2.md"), str(out / "table2.csv")]
     _write_settings(out, "manipulator", settings)
-    return dict(fits=fits, theta=theta, error_rate=err, table=table, files=files, settings=settings,
-                seconds=total)
+    return dict(
+        fits=fits, theta=theta, error_rate=err, table=table, files=files, settings=settings, seconds=total
+    )
 
 
 EXPERIMENTS = {"fig2": fig2, "gopaluni": gopaluni, "table1": table1, "manipulator": manipulator}
@@ -508,5 +663,6 @@ EXPERIMENTS = {"fig2": fig2, "gopaluni": gopaluni, "table1": table1, "manipulato
 
 def run_all(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bool = True) -> dict:
     """Run every experiment in turn; returns ``{name: results}``."""
-    return {name: fn(fast=fast, out_dir=out_dir, seed=seed, progress=progress)
-            for name, fn in EXPERIMENTS.items()}
+    return {
+        name: fn(fast=fast, out_dir=out_dir, seed=seed, progress=progress) for name, fn in EXPERIMENTS.items()
+    }

@@ -264,9 +264,7 @@ def ffbsi(
                 b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
                 d = zx[b_idx, m_idx].unsqueeze(1) - zf[b_idx]  # (P, L, nx)
                 logits = logW[k][b_idx] - 0.5 * (d * d).sum(-1)
-                J[b_idx, m_idx] = _draw(logits - torch.logsumexp(logits, -1, keepdim=True), 1, generator)[
-                    :, 0
-                ]
+                J[b_idx, m_idx] = _draw(logits, 1, generator)[:, 0]
         else:
             J = torch.gather(filt.ancestors[k + 1], 1, J_next)
             log_t = _log_kernel(zf, J, zx)
