@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ._ops import small_matmul, squared_norm
 from .model import SequenceBatch, StateSpaceModel
 from .noise import MaskedScale, masked_scale, student_t_log_prob
 from .resampling import effective_sample_size, get_resampler
@@ -42,6 +43,8 @@ class FilterOutput:
     ancestors : Tensor, shape (T, B, L), long
         ``ancestors[k, b, l]`` is the index at ``k - 1`` of the parent of particle ``l`` at ``k``
         (``ancestors[0]`` is the identity).
+    delta2 : Tensor, shape (T, B, L), optional
+        Squared whitened output residual of every particle (the E-step's latent scales reuse it).
     """
 
     particles: Tensor
@@ -50,6 +53,7 @@ class FilterOutput:
     ess: Tensor
     scale: MaskedScale
     ancestors: Tensor
+    delta2: Tensor | None = None
 
     def select(self, index) -> FilterOutput:
         """The filter output of the sequences ``index``."""
@@ -60,15 +64,22 @@ class FilterOutput:
             self.ess[:, index],
             self.scale.select(index),
             self.ancestors[:, index],
+            None if self.delta2 is None else self.delta2[:, index],
         )
 
 
-def _mahalanobis(
-    model: StateSpaceModel, data: SequenceBatch, scale: MaskedScale, k: int, x: Tensor
-) -> Tensor:
-    """Squared whitened residual norms ``delta2`` of ``y_k`` for particles ``x`` (B, L, nx)."""
-    z = scale.whiten(data.y[k].unsqueeze(-2) - model.observation(x, data.u[k]), k)
-    return (z * z).sum(-1)
+def _output_whitener(scale: MaskedScale, y: Tensor) -> tuple[Tensor, Tensor]:
+    """Outputs with missing entries set to 0 and whitening matrices with zero columns there, so
+    that ``C (y - g)`` needs no masking per step: ``(T, B, p)`` and ``(T, B, p, p)``."""
+    C = scale.chol_inv * scale.mask.unsqueeze(-2).to(scale.chol_inv.dtype)
+    return torch.where(scale.mask, y, torch.zeros_like(y)), C
+
+
+def _mahalanobis(model: StateSpaceModel, y0: Tensor, C: Tensor, u: Tensor, x: Tensor) -> Tensor:
+    """Squared whitened residual norms ``delta2`` (B, L) of one step's outputs ``y0`` (B, p) for
+    particles ``x`` (B, L, nx), with the whitener ``C`` (B, p, p) of :func:`_output_whitener`."""
+    r = y0.unsqueeze(-2) - model.observation(x, u)  # (B, L, p)
+    return squared_norm(small_matmul(C.unsqueeze(-3), r.unsqueeze(-1)).squeeze(-1))
 
 
 def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -140,7 +151,19 @@ def particle_filter(
     gaussian = bool(torch.isinf(nu).all())
     always = ess_threshold >= 1.0
     log_uniform = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
-    Cw_t = Cw.transpose(-1, -2)
+    # All process-noise draws at once, shaped by chol(Rw) elementwise (tiny matrices).  Standard
+    # normals are drawn in single precision (2x faster than double on CPU; the 24-bit draws are
+    # more than enough for Monte Carlo noise) and used in the model's dtype.
+    noise_dtype = torch.float32 if x.dtype == torch.float64 else x.dtype
+    noise = torch.randn(max(T - 1, 0), B, L, nx, dtype=noise_dtype, device=x.device, generator=generator)
+    noise = noise.to(x.dtype)
+    if nx == 1:
+        noise = noise * Cw.view(B, 1, 1)
+    else:
+        noise = (noise.unsqueeze(-2) * Cw.unsqueeze(-3)).sum(-1)  # noise @ Cw^T
+    delta2_all = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
+    ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
+    y0, C = _output_whitener(scale, data.y)
     for k in range(T):
         if k > 0:
             if always:
@@ -152,9 +175,9 @@ def particle_filter(
                 log_w = torch.where(do, log_uniform, log_w)
             ancestors[k] = anc
             x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))
-            noise = torch.randn(B, L, nx, dtype=x.dtype, device=x.device, generator=generator)
-            x = model.transition(x, data.u[k - 1]) + noise @ Cw_t
-        delta2 = _mahalanobis(model, data, scale, k, x)
+            x = model.transition(x, data.u[k - 1]) + noise[k - 1]
+        delta2 = _mahalanobis(model, y0[k], C[k], data.u[k], x)
+        delta2_all[k] = delta2
         if gaussian:
             logp = const[k].unsqueeze(-1) - 0.5 * delta2
         else:
@@ -165,7 +188,7 @@ def particle_filter(
         log_w = logits - lse.unsqueeze(-1)
         particles[k] = x
         log_weights[k] = log_w
-    ess = effective_sample_size(log_weights)
+        ess[k] = effective_sample_size(log_w)
     if not torch.isfinite(log_lik).all():
         bad = (~torch.isfinite(log_weights).any(-1)) | (~torch.isfinite(particles).all(-1).all(-1))
         steps = torch.nonzero(bad.any(-1)).flatten().tolist()
@@ -174,4 +197,4 @@ def particle_filter(
             "particle filter produced non-finite weights or states "
             f"({where}); check that f and g return finite values at the current parameters"
         )
-    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors)
+    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, delta2_all)

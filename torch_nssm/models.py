@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ._ops import broadcast_leading
 from .datasets import MANIPULATOR_DT, ManipulatorConstants, SimulatedData
 from .parametric import LinearInParameters
 
@@ -31,11 +32,6 @@ __all__ = [
 def _scalar_parameter(value: float | Tensor, dtype: torch.dtype, device) -> nn.Parameter:
     t = torch.as_tensor(value, dtype=dtype, device=device).detach().clone().reshape(())
     return nn.Parameter(t)
-
-
-def _broadcast_leading(x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    lead = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
-    return x.expand(lead + x.shape[-1:]), u.expand(lead + u.shape[-1:])
 
 
 class PaperTransition(LinearInParameters):
@@ -67,7 +63,7 @@ class PaperTransition(LinearInParameters):
 
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi = [[x, u]]`` of shape ``(..., 1, 2)`` and a zero offset ``(..., 1)``."""
-        x, u = _broadcast_leading(x, u)
+        x, u = broadcast_leading(x, u)
         Phi = torch.stack([x[..., 0], u[..., 0]], dim=-1).unsqueeze(-2)
         return Phi, torch.zeros_like(x)
 
@@ -159,7 +155,7 @@ class ManipulatorTransition(LinearInParameters):
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., 4, 2)`` (``dt dphi_i`` at row ``2 + i``, column ``i``), offset
         ``(..., 4)``."""
-        x, u = _broadcast_leading(x, u)
+        x, u = broadcast_leading(x, u)
         vel, ang = x[..., :2], x[..., 2:]
         force = u[..., :1]
         acc = -(vel @ self.MinvE.T) - (ang @ self.MinvK0.T) - force * (ang @ self.MinvK1.T)

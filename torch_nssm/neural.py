@@ -34,6 +34,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ._ops import broadcast_leading
+
 __all__ = ["MLPTransition", "MLPObservation", "GreyBoxTransition", "ACTIVATIONS"]
 
 #: Activation names accepted by the blocks (a ``nn.Module`` subclass or factory works too).
@@ -154,11 +156,6 @@ def _mean_std(t: Tensor) -> tuple[Tensor, Tensor]:
     return mean, torch.where(tiny | ~torch.isfinite(std), torch.ones_like(std), std)
 
 
-def _broadcast_leading(x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    lead = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
-    return x.expand(lead + x.shape[-1:]), u.expand(lead + u.shape[-1:])
-
-
 # ---------------------------------------------------------------------- the shared base
 class _NeuralBlock(nn.Module):
     """Input normalisation buffers ``x_mean``, ``x_scale``, ``u_mean``, ``u_scale`` and the MLP."""
@@ -188,7 +185,7 @@ class _NeuralBlock(nn.Module):
 
     def normalised_input(self, x: Tensor, u: Tensor) -> Tensor:
         """``[(x - x_mean) / x_scale, (u - u_mean) / u_scale]`` of shape ``(..., nx + nu)``."""
-        x, u = _broadcast_leading(x, u)
+        x, u = broadcast_leading(x, u)
         return torch.cat([(x - self.x_mean) / self.x_scale, (u - self.u_mean) / self.u_scale], dim=-1)
 
     def _set_input_normalisation(self, x: ArrayLike, u: ArrayLike) -> None:

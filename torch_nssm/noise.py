@@ -143,11 +143,14 @@ def latent_scale_expectations(delta2: Tensor, n_obs: Tensor, dof: Tensor) -> tup
         ``<lam>`` and ``<log lam>``, shape of the broadcast inputs.
     """
     dof = torch.as_tensor(dof, dtype=delta2.dtype, device=delta2.device)
-    nu = torch.where(torch.isinf(dof), torch.ones_like(dof), dof)
-    e_lam = (nu + n_obs) / (nu + delta2)
-    # digamma on the (usually much smaller) broadcast of nu and p only, not per residual
-    e_log = torch.digamma(0.5 * (nu + n_obs)) - torch.log(0.5 * (nu + delta2))
     inf = torch.isinf(dof)
+    nu = torch.where(inf, torch.ones_like(dof), dof)
+    denominator = nu + delta2
+    e_lam = (nu + n_obs) / denominator
+    # digamma on the (usually much smaller) broadcast of nu and p only, not per residual
+    e_log = torch.digamma(0.5 * (nu + n_obs)) - torch.log(0.5 * denominator)
+    if not bool(inf.any()):
+        return e_lam, e_log
     return (
         torch.where(inf, torch.ones_like(e_lam), e_lam),
         torch.where(inf, torch.zeros_like(e_log), e_log),

@@ -49,9 +49,9 @@ def multinomial(
 def systematic(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
     """Systematic resampling: one uniform per row, positions ``(j + U) / n``.
 
-    Particle ``i`` gets as many copies as there are positions in ``[cdf_{i-1}, cdf_i)``, i.e.
-    ``floor(n cdf_i - U + 1) - floor(n cdf_{i-1} - U + 1)``; the indices are expanded from those
-    counts (no search), sorted as the inverse-CDF method would give them.
+    Particle ``i`` gets the positions in ``[cdf_{i-1}, cdf_i)``, i.e. ``floor(n cdf_i - U + 1) -
+    floor(n cdf_{i-1} - U + 1)`` of them; the indices come sorted, as the inverse-CDF method
+    would give them, from one scatter and one cumulative sum (no search).
     """
     B, L = log_weights.shape
     n = L if n is None else n
@@ -59,10 +59,11 @@ def systematic(log_weights: Tensor, n: int | None = None, generator: torch.Gener
     cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
     cdf = cdf / cdf[:, -1:]
     below = torch.floor(n * cdf - u + 1.0).nan_to_num_(0.0).clamp_(0, n)  # #{j: (j + u)/n < cdf_i}
-    below[:, -1] = n
-    counts = torch.diff(below, dim=-1, prepend=torch.zeros_like(below[:, :1])).long()
-    idx = torch.arange(L, device=log_weights.device).repeat(B)
-    return torch.repeat_interleave(idx, counts.flatten(), output_size=B * n).view(B, n)
+    # Position j belongs to the particle i with below_{i-1} <= j < below_i, i.e. its index is the
+    # number of i' < L - 1 with below_i' <= j: one scatter and one cumulative sum, no search.
+    marks = torch.zeros(B, n + 1, dtype=torch.long, device=log_weights.device)
+    marks.scatter_add_(1, below[:, :-1].long(), torch.ones(B, L - 1, dtype=torch.long, device=marks.device))
+    return torch.cumsum(marks[:, :n], dim=1)
 
 
 def stratified(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
