@@ -10,6 +10,7 @@ kernels two threads on two cores are slower; measured here in the table's ``thre
     python benchmarks/estep.py                 # N = 500, L in {100, 300, 1000}   (~5 min)
     python benchmarks/estep.py --full          # N in {500, 2000}, L up to 3000   (long)
     python benchmarks/estep.py --ours-only     # torch_nssm only (no peer packages needed)
+    python benchmarks/estep.py --table1 20     # also time the Table 1 study (20 iterations)
 
 The peers are the optional ``bench`` extra (see README_peers.md for the install command).
 """
@@ -73,8 +74,9 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
         peak = _rss_mb() - base
         m = model()
         t0 = time.perf_counter()
-        m_step(m, batch, est, MStepOptions(fit_dof=False))
+        new = m_step(m, batch, est, MStepOptions(fit_dof=False))
         t_m = time.perf_counter() - t0
+        theta = [float(new.f.a), float(new.f.b), float(new.g.c)]
         mean, _ = smoothed_moments(est.filter.particles, est.smoother.log_weights)
         return {
             "impl": f"torch_nssm-{impl}",
@@ -83,6 +85,7 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
             "estep_s": t_e,
             "iter_s": t_e + t_m,
             "peak_mb": peak,
+            "theta": theta,
             "smoothed_mean": mean[:, 0, 0].numpy().tolist(),
         }
     runner = {
@@ -128,6 +131,13 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per measurement")
     p.add_argument("--json", help="also write the raw results here")
+    p.add_argument(
+        "--table1",
+        type=int,
+        metavar="ITERS",
+        help="also time the Table 1 study (100 data sets, N=1000, L=100, mcmc, one batched fit) for "
+        "ITERS EM iterations and project it to the paper's 250",
+    )
     a = p.parse_args(argv)
     if a.worker:
         impl, N, L, seed, threads = a.worker
@@ -150,7 +160,17 @@ def main(argv=None) -> int:
         with open(a.json, "w") as fh:
             json.dump(results, fh)
     _table(results, Ns, Ls, a.threads)
+    if a.table1:
+        _table1(a.table1, a.seed)
     return 0
+
+
+def _table1(n_iter: int, seed: int) -> None:
+    """Time the paper's Table 1 study as one batched call (see ``table1_study.py``)."""
+    sys.path.insert(0, HERE)
+    import table1_study
+
+    table1_study.print_table([table1_study.run("mcmc", n_iter, seed=seed)])
 
 
 def _table(results: list[dict], Ns, Ls, threads: int) -> None:
@@ -158,8 +178,11 @@ def _table(results: list[dict], Ns, Ls, threads: int) -> None:
 
     by = {(r["impl"], r["N"], r["L"]): r for r in results}
     print(f"\nE-step (filter + smoother) seconds, Section 4.1 model, Gaussian noise, torch threads={threads}")
-    print("| N | L | implementation | E-step s | EM iter s | peak MB | RMS vs our FFBSm | ours faster by |")
-    print("|---|---|---|---|---|---|---|---|")
+    print(
+        "| N | L | implementation | E-step s | EM iter s | peak MB | RMS vs our FFBSm "
+        "| a, b, c after one M-step | ours faster by |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|")
     pair = {
         "particles-ON2": "torch_nssm-ffbsm",
         "pyParticleEst-full": "torch_nssm-ffbsm",
@@ -181,9 +204,10 @@ def _table(results: list[dict], Ns, Ls, threads: int) -> None:
                 ours = by.get((pair.get(impl, ""), N, L))
                 ratio = f"{r['estep_s'] / ours['estep_s']:.1f}x ({pair[impl][11:]})" if ours else ""
                 it = "" if np.isnan(r["iter_s"]) else f"{r['iter_s']:.3f}"
+                th = ", ".join(f"{v:.4f}" for v in r["theta"]) if r.get("theta") else ""
                 print(
                     f"| {N} | {L} | {impl} | {r['estep_s']:.3f} | {it} | {r['peak_mb']:.0f} | "
-                    f"{rms:.3f} | {ratio} |"
+                    f"{rms:.3f} | {th} | {ratio} |"
                 )
     for o in ("ffbsi", "mcmc"):
         for N in Ns:

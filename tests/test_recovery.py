@@ -302,6 +302,56 @@ def test_batched_m_step_uses_the_process_noise_metric_with_two_states(monkeypatc
         np.testing.assert_allclose(a.Rw_, b.Rw_, rtol=1e-6)
 
 
+class _TwoOutputG(LinearInParameters):
+    """g(x, u) = [c0 x_0 + x_1, c1 x_1]: two outputs, so the measurement metric is a 2x2 matrix."""
+
+    def __init__(self):
+        super().__init__()
+        self.c = torch.nn.Parameter(torch.tensor([0.7, 1.3], dtype=torch.float64))
+
+    def features(self, x, u):
+        z = torch.zeros_like(x[..., :1])
+        Phi = torch.stack([torch.cat([x[..., :1], z], -1), torch.cat([z, x[..., 1:2]], -1)], -2)
+        return Phi, torch.cat([x[..., 1:2], z], -1)
+
+
+def test_batched_m_step_with_two_outputs_and_missing_components(monkeypatch):
+    """p = 2, a full Rv and single missing components: the batched M-step equals the per-set one."""
+    import torch_nssm.batch as batch
+
+    rng = np.random.default_rng(1)
+    us, ys = [], []
+    for n in (110, 90):  # different lengths: padded rows must not count
+        u = rng.standard_normal(n)
+        x = np.zeros((n, 2))
+        for k in range(n - 1):
+            x[k + 1] = [0.8 * x[k, 0] + 0.2 * x[k, 1], -0.3 * x[k, 0] + u[k]] + 0.3 * rng.standard_normal(2)
+        y = np.stack([x[:, 0] + x[:, 1], 1.2 * x[:, 1]], 1) + 0.2 * rng.standard_normal((n, 2))
+        y[rng.random((n, 2)) < 0.1] = np.nan
+        us.append(u)
+        ys.append(y)
+    proto = RobustNSSMEstimator(
+        _TwoStateF(),
+        _TwoOutputG(),
+        x0_mean=[0.0, 0.0],
+        Rv_init=[[0.1, 0.03], [0.03, 0.2]],
+        n_particles=40,
+        n_iter=3,
+        tol=0,
+        random_state=0,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fast = fit_independent(proto, us, ys)
+        monkeypatch.setattr(batch, "_batchable", lambda module: False)
+        slow = fit_independent(proto, us, ys)
+    for a, b in zip(fast, slow):
+        np.testing.assert_allclose(a.g_.c.detach().numpy(), b.g_.c.detach().numpy(), rtol=1e-6)
+        np.testing.assert_allclose(a.Rv_, b.Rv_, rtol=1e-6)
+        np.testing.assert_allclose(a.dof_, b.dof_, rtol=1e-6)
+        np.testing.assert_allclose(a.f_.A.detach().numpy(), b.f_.A.detach().numpy(), rtol=1e-6)
+
+
 def test_noise_covariances_can_be_held_fixed(paper_data):
     est = RobustNSSMEstimator(
         PaperTransition(0.5, 0.5),

@@ -367,7 +367,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
                 est_b = est.select(slice(j, j + 1))
                 backup = (copy.deepcopy(models[b].f.state_dict()), copy.deepcopy(models[b].g.state_dict()))
                 try:
-                    models[b] = m_step(models[b], datas[b], est_b, options)
+                    models[b] = m_step(models[b], all_data.select(slice(b, b + 1)), est_b, options)
                 except NumericalError as exc:
                     models[b].f.load_state_dict(backup[0])
                     models[b].g.load_state_dict(backup[1])
@@ -410,7 +410,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             models[b],
             histories[b],
             last_est[b][0].select(slice(last_est[b][1], last_est[b][1] + 1)),
-            datas[b],
+            all_data.select(slice(b, b + 1)),  # padded like the E-step output (lengths kept)
             False,
             n_done[b],
             converged[b],
