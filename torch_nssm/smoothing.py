@@ -123,14 +123,15 @@ def ffbsm(
         zf = _whitened(model.transition(X[k], data.u[k]), Cinv_t)  # (B, L, nx)
         zx = _whitened(x_next, Cinv_t)
         a = logW[k] - 0.5 * squared_norm(zf)  # (B, L)
-        s = torch.zeros(B, L, dtype=X.dtype, device=X.device)
-        m = torch.zeros(B, L, nx, dtype=X.dtype, device=X.device)
+        # rows [w_j, w_j x_j^T] (B, 1 + nx, L): one product with the kernel gives s and m together,
+        # and multiplying from the left reads K in its stored layout (no transposed copy)
+        wx = torch.cat([w_next.unsqueeze(1), (w_next.unsqueeze(-1) * x_next).transpose(-1, -2)], 1)
+        sm = torch.zeros(B, 1 + nx, L, dtype=X.dtype, device=X.device)
         for sl in _chunks(L, chunk_size):
             # (B, J, L_i): the softmax runs over the contiguous last dimension (i)
             K = torch.softmax(torch.baddbmm(a.unsqueeze(1), zx[:, sl], zf.transpose(-1, -2)), dim=-1)
-            wj = w_next[:, sl].unsqueeze(1)  # (B, 1, J)
-            s = s + (wj @ K).squeeze(1)
-            m = m + K.transpose(-1, -2) @ (wj.transpose(-1, -2) * x_next[:, sl])
+            sm = sm + wx[:, :, sl] @ K
+        s, m = sm[:, 0], sm[:, 1:].transpose(-1, -2)
         valid = trans[k]  # (B,)
         pos = s > 0
         xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[k])
