@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from torch_nssm import reproduce
@@ -43,3 +44,36 @@ def test_cli_reproduce_runs(tmp_path, capsys):
     assert main(["reproduce", "fig2", "--fast", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "fig2.png").exists() and (tmp_path / "fig2.csv").exists()
     assert "fig2" in capsys.readouterr().out
+
+
+def test_table1_fast_reports_the_50_iteration_budget(tmp_path):
+    res = reproduce.table1(fast=True, out_dir=tmp_path, progress=False, n_sets=3, n_iter=12)
+    assert res["settings"]["n_iter"] == 12 and res["estimates"].shape == (3, 3)
+    path = res["bias_norm_path"]
+    assert path.shape == (13,) and np.all(np.isfinite(path))
+    # index 0 is the initial value (0.5, 0.5, 0.5): ||(0.9, 1, 1) - 0.5|| = 0.98
+    assert path[0] == pytest.approx(np.linalg.norm([0.4, 0.5, 0.5]))
+    assert path[-1] < path[0]  # EM moved towards the truth
+    # with fewer than 50 iterations the "50-iteration" numbers are those of the last iteration
+    assert res["bias_norm_50"] == pytest.approx(path[-1])
+    assert len(res["std_50"]) == 3 and np.all(np.asarray(res["std_50"]) > 0)
+    assert res["iterations_to_target"] is None  # 12 iterations on 300 samples do not reach 0.010
+    assert "After 12 iterations" in (tmp_path / "table1.md").read_text()
+
+
+def test_manipulator_kalman_mle_is_the_maximum_likelihood():
+    """The exact (Kalman) MLE: a local maximum of the exact likelihood, near the truth within its s.e."""
+    from torch_nssm.datasets import make_manipulator
+
+    data = make_manipulator(n_samples=200, outlier_fraction=0.1, random_state=1)
+    res = reproduce.manipulator_kalman_mle(data)
+    theta, se = np.array(res["theta"]), np.array(res["se"])
+    keep = ~data.outlier_mask
+    nll = reproduce._manipulator_nll(theta, data, keep)
+    for step in ([0.01, 0], [0, 0.01], [-0.01, 0], [0, -0.01]):
+        assert nll < reproduce._manipulator_nll(theta + np.array(step), data, keep)
+    assert np.all(se > 0) and np.all(se < 0.2)
+    assert np.all(np.abs(theta - 1.0) < 4 * se)
+    # keeping the outliers (values up to 1 rad on 0.01 rad noise) ruins the Gaussian likelihood
+    polluted = reproduce.manipulator_kalman_mle(data, drop_outliers=False)
+    assert np.abs(np.array(polluted["theta"]) - 1).max() > np.abs(theta - 1).max()
