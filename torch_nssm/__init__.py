@@ -5,12 +5,13 @@
 (robust to outliers) by EM with a particle smoother (Liu & Yang, Neurocomputing 2019).
 """
 
-from . import datasets, models, neural, plotting
+from . import datasets, models, neural, plotting, silverbox, warm_start
 from .batch import fit_independent
 from .estimator import RobustNSSMEstimator
 from .filtering import NumericalError
 from .parametric import LinearInParameters
 from .results import StateEstimate
+from .warm_start import warm_start_estimator
 
 __all__ = [
     "RobustNSSMEstimator",
@@ -18,9 +19,12 @@ __all__ = [
     "StateEstimate",
     "NumericalError",
     "fit_independent",
+    "warm_start_estimator",
     "datasets",
     "models",
     "neural",
     "plotting",
+    "warm_start",
+    "silverbox",
 ]
 __version__ = "0.1.0"
