@@ -76,7 +76,7 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
         t0 = time.perf_counter()
         new = m_step(m, batch, est, MStepOptions(fit_dof=False))
         t_m = time.perf_counter() - t0
-        theta = [float(new.f.a), float(new.f.b), float(new.g.c)]
+        theta = [float(new.f.a.detach()), float(new.f.b.detach()), float(new.g.c.detach())]
         mean, _ = smoothed_moments(est.filter.particles, est.smoother.log_weights)
         return {
             "impl": f"torch_nssm-{impl}",
