@@ -340,7 +340,7 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
                 c,
                 float(est.Rv_[0, 0]),
                 err,
-                round(secs, 1),
+                f"{secs:.1f}",
             ]
         )
     total = time.perf_counter() - t_start
@@ -741,7 +741,7 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
                 f"{o1:.4f} ± {se1:.4f}",
                 f"{o2:.4f} ± {se2:.4f}",
                 f"{it1} / {it2}",
-                round(secs, 1),
+                f"{secs:.1f}",
             ]
         )
     total = time.perf_counter() - t_start
