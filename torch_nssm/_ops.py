@@ -25,20 +25,13 @@ _UNROLL = 8
 
 def squared_norm(z: Tensor) -> Tensor:
     """``(z * z).sum(-1)``."""
-    if z.shape[-1] <= _UNROLL:
-        out = z[..., 0] * z[..., 0]
-        for i in range(1, z.shape[-1]):
-            out = out + z[..., i] * z[..., i]
-        return out
-    return (z * z).sum(-1)
+    return linear_combination(z, z)
 
 
 def linear_combination(Phi: Tensor, theta: Tensor) -> Tensor:
     """``(Phi * theta).sum(-1)`` with broadcasting: ``Phi`` ``(..., P)``, ``theta`` ``(..., P)``."""
     P = Phi.shape[-1]
-    if P == 0:
-        return (Phi * theta).sum(-1)
-    if P <= _UNROLL:
+    if 0 < P <= _UNROLL:
         out = Phi[..., 0] * theta[..., 0]
         for i in range(1, P):
             out = out + Phi[..., i] * theta[..., i]

@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 
 from . import _validation as V
 from ._ops import linear_combination, small_matmul, time_blocks
-from .em import e_step, m_step
+from .em import m_step
 from .filtering import NumericalError
 from .model import SequenceBatch, StateSpaceModel
 from .noise import solve_dof
@@ -208,10 +208,10 @@ def _linear_m_step(
 
     m = scale.mask.to(X.dtype)
     P = (scale.chol_inv.transpose(-1, -2) @ scale.chol_inv) * m.unsqueeze(-1) * m.unsqueeze(-2)
-    y = torch.where(scale.mask, data.y, torch.zeros_like(data.y)).unsqueeze(2).expand(*X.shape[:-1], -1)
+    y = scale.fill_missing(data.y).unsqueeze(2).expand(*X.shape[:-1], -1)
     thetas_g = torch.stack([m_.g.theta().detach() for m_ in models])
     obs_args = (X, data.u, y, lambda sl: smoothing_weights(sl) * est.e_lam[sl])
-    theta_g = _batched_linear_solve(g0, thetas_g, *obs_args, scale.chol_inv * m.unsqueeze(-2))
+    theta_g = _batched_linear_solve(g0, thetas_g, *obs_args, scale.whitener())
     K = stacked.Rv.unsqueeze(0) @ P  # (T, B, p, p): identity on the observed block
     cond = stacked.Rv.unsqueeze(0) - K @ stacked.Rv.unsqueeze(0)
     n_obs = observed.sum(0).clamp_min(1).to(X.dtype)
@@ -320,16 +320,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
                 break
             idx = torch.tensor(active, device=device)
             batch_model = _stack_models([models[b] for b in active])
-            est = e_step(
-                batch_model,
-                all_data.select(idx),
-                estimator._particles(it),
-                smoother=estimator.smoother,
-                resampling=estimator.resampling,
-                ess_threshold=estimator.ess_threshold,
-                chunk_size=estimator.chunk_size,
-                generator=generator,
-            )
+            est = estimator._e_step(batch_model, all_data.select(idx), generator, it)
             update = []  # positions j in the batch of the data sets that take an M-step
             batch_lls = est.log_likelihood.tolist()
             for j, b in enumerate(active):
@@ -392,16 +383,7 @@ def fit_independent(estimator, u, y, *, show_progress: bool | None = None) -> li
             if K > 1 and n_done[b] >= K:
                 models[b] = _averaged(models[b], histories[b], K)
         idx = torch.tensor(final, device=device)
-        est = e_step(
-            _stack_models([models[b] for b in final]),
-            all_data.select(idx),
-            estimator._particles(),
-            smoother=estimator.smoother,
-            resampling=estimator.resampling,
-            ess_threshold=estimator.ess_threshold,
-            chunk_size=estimator.chunk_size,
-            generator=generator,
-        )
+        est = estimator._e_step(_stack_models([models[b] for b in final]), all_data.select(idx), generator)
         for j, b in enumerate(final):
             last_est[b] = (est, j)
     n_unconverged = 0

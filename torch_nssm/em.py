@@ -66,21 +66,20 @@ def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutpu
     """``<lam>`` and ``<log lam>`` of every particle at every step (NOTES §1)."""
     T, B, L, nx = filt.particles.shape
     scale = filt.scale
+    delta2 = filt.delta2  # the filter's residuals at the same parameters
+    if delta2 is None:  # a filter output built by hand: recompute them
+        with torch.no_grad():
+            # Sequence-major (B, T*L, .) so that per-sequence (stacked) modules see their own rows.
+            x = filt.particles.transpose(0, 1).reshape(B, T * L, nx)
+            u = data.u.transpose(0, 1).unsqueeze(2).expand(B, T, L, data.u.shape[-1]).reshape(B, T * L, -1)
+            g = model.g(x, u).reshape(B, T, L, -1).transpose(0, 1)
+            delta2 = squared_norm(scale.whiten(data.y.unsqueeze(2) - g))
     dof = model.per_sequence("dof", B).view(1, B, 1)
-    if filt.delta2 is not None:  # the filter's residuals at the same parameters, block by block
-        e_lam, e_log = torch.empty_like(filt.delta2), torch.empty_like(filt.delta2)
-        n_obs = scale.n_obs.unsqueeze(-1)
-        for sl in time_blocks(T, B * L):
-            e_lam[sl], e_log[sl] = latent_scale_expectations(filt.delta2[sl], n_obs[sl], dof)
-        return e_lam, e_log
-    with torch.no_grad():
-        # Sequence-major (B, T*L, .) so that per-sequence (stacked) modules see their own rows.
-        x = filt.particles.transpose(0, 1).reshape(B, T * L, nx)
-        u = data.u.transpose(0, 1).unsqueeze(2).expand(B, T, L, data.u.shape[-1]).reshape(B, T * L, -1)
-        g = model.g(x, u).reshape(B, T, L, -1).transpose(0, 1)
-        z = scale.whiten(data.y.unsqueeze(2) - g)
-        delta2 = squared_norm(z)
-        return latent_scale_expectations(delta2, scale.n_obs.unsqueeze(-1), dof)
+    n_obs = scale.n_obs.unsqueeze(-1)
+    e_lam, e_log = torch.empty_like(delta2), torch.empty_like(delta2)
+    for sl in time_blocks(T, B * L):  # block by block: the temporaries stay in cache
+        e_lam[sl], e_log[sl] = latent_scale_expectations(delta2[sl], n_obs[sl], dof)
+    return e_lam, e_log
 
 
 def e_step(

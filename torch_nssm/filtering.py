@@ -68,16 +68,10 @@ class FilterOutput:
         )
 
 
-def _output_whitener(scale: MaskedScale, y: Tensor) -> tuple[Tensor, Tensor]:
-    """Outputs with missing entries set to 0 and whitening matrices with zero columns there, so
-    that ``C (y - g)`` needs no masking per step: ``(T, B, p)`` and ``(T, B, p, p)``."""
-    C = scale.chol_inv * scale.mask.unsqueeze(-2).to(scale.chol_inv.dtype)
-    return torch.where(scale.mask, y, torch.zeros_like(y)), C
-
-
 def _mahalanobis(model: StateSpaceModel, y0: Tensor, C: Tensor, u: Tensor, x: Tensor) -> Tensor:
-    """Squared whitened residual norms ``delta2`` (B, L) of one step's outputs ``y0`` (B, p) for
-    particles ``x`` (B, L, nx), with the whitener ``C`` (B, p, p) of :func:`_output_whitener`."""
+    """Squared whitened residual norms ``delta2`` (B, L) of one step's outputs ``y0`` (B, p, missing
+    entries 0) for particles ``x`` (B, L, nx), with the whitener ``C`` (B, p, p) of
+    :meth:`MaskedScale.whitener`."""
     r = y0.unsqueeze(-2) - model.observation(x, u)  # (B, L, p)
     return squared_norm(small_matmul(C.unsqueeze(-3), r.unsqueeze(-1)).squeeze(-1))
 
@@ -163,7 +157,7 @@ def particle_filter(
         noise = (noise.unsqueeze(-2) * Cw.unsqueeze(-3)).sum(-1)  # noise @ Cw^T
     delta2_all = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
     ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
-    y0, C = _output_whitener(scale, data.y)
+    y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
     for k in range(T):
         if k > 0:
             if always:

@@ -60,6 +60,15 @@ class MaskedScale:
             self.chol_inv[:, index], self.logdet[:, index], self.n_obs[:, index], self.mask[:, index]
         )
 
+    def whitener(self) -> Tensor:
+        """``chol_inv`` with zero columns at the missing components, ``(..., p, p)``: applied to a
+        residual whose missing entries are finite (see :meth:`fill_missing`), it needs no mask."""
+        return self.chol_inv * self.mask.unsqueeze(-2).to(self.chol_inv.dtype)
+
+    def fill_missing(self, y: Tensor) -> Tensor:
+        """Outputs ``y`` (shape of the mask) with the missing entries set to 0."""
+        return torch.where(self.mask, y, torch.zeros_like(y))
+
     def whiten(self, resid: Tensor, k: int | None = None) -> Tensor:
         """Whiten residuals of shape ``(..., L, p)`` (leading dims as the mask's, plus particles);
         with ``k``, residuals ``(B, L, p)`` of time step ``k`` of a time-major scale."""
