@@ -34,7 +34,7 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
+def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "cpu") -> dict:
     sys.path.insert(0, HERE)
     import numpy as np
     import peers
@@ -50,13 +50,16 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
         from torch_nssm.smoothing import smoothed_moments
 
         torch.set_num_threads(threads)
-        t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+        dev = torch.device(device)
+        t = lambda v: torch.tensor(v, dtype=torch.float64, device=dev)  # noqa: E731
+        cuda = dev.type == "cuda"
+        sync = torch.cuda.synchronize if cuda else (lambda: None)
         batch = SequenceBatch.from_sequences([t(u).reshape(-1, 1)], [t(y).reshape(-1, 1)])
 
         def model():
             return StateSpaceModel(
-                PaperTransition(0.9, 1.0),
-                PaperObservation(1.0),
+                PaperTransition(0.9, 1.0).to(dev),
+                PaperObservation(1.0).to(dev),
                 t([[0.1]]),
                 t([[0.1]]),
                 t(float("inf")),
@@ -64,29 +67,36 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
                 t([[1.0]]),
             )
 
-        gen = torch.Generator().manual_seed(seed)
+        gen = torch.Generator(device=dev).manual_seed(seed)
         e_step(model(), batch, 50, smoother=impl, generator=gen)  # warm-up (lazy imports)
+        e_step(model(), batch, L, smoother=impl, generator=gen)  # warm-up at size (allocator, kernels)
         gen.manual_seed(seed)  # the same filter particles for every smoother
         base = _rss_mb()
+        if cuda:
+            torch.cuda.reset_peak_memory_stats()
+            base_gpu = torch.cuda.memory_allocated()
+        sync()
         t0 = time.perf_counter()
         est = e_step(model(), batch, L, smoother=impl, generator=gen)
+        sync()
         t_e = time.perf_counter() - t0
-        peak = _rss_mb() - base
+        peak = (torch.cuda.max_memory_allocated() - base_gpu) / 2**20 if cuda else _rss_mb() - base
         m = model()
         t0 = time.perf_counter()
         new = m_step(m, batch, est, MStepOptions(fit_dof=False))
+        sync()
         t_m = time.perf_counter() - t0
         theta = [float(new.f.a.detach()), float(new.f.b.detach()), float(new.g.c.detach())]
         mean, _ = smoothed_moments(est.filter.particles, est.smoother.log_weights)
         return {
-            "impl": f"torch_nssm-{impl}",
+            "impl": f"torch_nssm-{impl}" + ("" if device == "cpu" else f"@{dev.type}"),
             "N": N,
             "L": L,
             "estep_s": t_e,
             "iter_s": t_e + t_m,
             "peak_mb": peak,
             "theta": theta,
-            "smoothed_mean": mean[:, 0, 0].numpy().tolist(),
+            "smoothed_mean": mean[:, 0, 0].cpu().numpy().tolist(),
         }
     runner = {
         "particles-ON2": peers.particles_ffbs_on2,
@@ -107,8 +117,10 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int) -> dict:
     }
 
 
-def _run(impl: str, N: int, L: int, seed: int, threads: int, timeout: float) -> dict | None:
-    cmd = [sys.executable, __file__, "--worker", impl, str(N), str(L), str(seed), str(threads)]
+def _run(
+    impl: str, N: int, L: int, seed: int, threads: int, timeout: float, device: str = "cpu"
+) -> dict | None:
+    cmd = [sys.executable, __file__, "--worker", impl, str(N), str(L), str(seed), str(threads), device]
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, check=True)
     except subprocess.TimeoutExpired:
@@ -122,12 +134,17 @@ def _run(impl: str, N: int, L: int, seed: int, threads: int, timeout: float) -> 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--worker", nargs=5, help=argparse.SUPPRESS)
+    p.add_argument("--worker", nargs=6, help=argparse.SUPPRESS)
     p.add_argument("--full", action="store_true", help="N in {500, 2000}, L in {100, 300, 1000, 3000}")
     p.add_argument("--N", type=int, nargs="*", default=None)
     p.add_argument("--L", type=int, nargs="*", default=None)
     p.add_argument("--ours-only", action="store_true")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument(
+        "--device",
+        default="cpu",
+        help="also run ours on this torch device (e.g. cuda); the peers always run on the CPU",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds per measurement")
     p.add_argument("--json", help="also write the raw results here")
@@ -140,8 +157,8 @@ def main(argv=None) -> int:
     )
     a = p.parse_args(argv)
     if a.worker:
-        impl, N, L, seed, threads = a.worker
-        print(json.dumps(_worker(impl, int(N), int(L), int(seed), int(threads))))
+        impl, N, L, seed, threads, device = a.worker
+        print(json.dumps(_worker(impl, int(N), int(L), int(seed), int(threads), device)))
         return 0
     Ns = a.N or ([500, 2000] if a.full else [500])
     Ls = a.L or ([100, 300, 1000, 3000] if a.full else [100, 300, 1000])
@@ -149,8 +166,11 @@ def main(argv=None) -> int:
     results = []
     for N in Ns:
         for L in Ls:
-            for impl in impls:
-                r = _run(impl, N, L, a.seed, a.threads, a.timeout)
+            runs = [(impl, "cpu") for impl in impls]
+            if a.device != "cpu":
+                runs[len(OURS) : len(OURS)] = [(impl, a.device) for impl in OURS]
+            for impl, device in runs:
+                r = _run(impl, N, L, a.seed, a.threads, a.timeout, device)
                 if r is not None:
                     results.append(r)
                     print(
@@ -159,7 +179,7 @@ def main(argv=None) -> int:
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(results, fh)
-    _table(results, Ns, Ls, a.threads)
+    _table(results, Ns, Ls, a.threads, a.device)
     if a.table1:
         _table1(a.table1, a.seed)
     return 0
@@ -173,7 +193,7 @@ def _table1(n_iter: int, seed: int) -> None:
     table1_study.print_table([table1_study.run("mcmc", n_iter, seed=seed)])
 
 
-def _table(results: list[dict], Ns, Ls, threads: int) -> None:
+def _table(results: list[dict], Ns, Ls, threads: int, device: str = "cpu") -> None:
     import numpy as np
 
     by = {(r["impl"], r["N"], r["L"]): r for r in results}
@@ -181,8 +201,10 @@ def _table(results: list[dict], Ns, Ls, threads: int) -> None:
     print(
         "| N | L | implementation | E-step s | EM iter s | peak MB | RMS vs our FFBSm "
         "| a, b, c after one M-step | ours faster by |"
+        + (f" ours on {device} faster by |" if device != "cpu" else "")
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|" + ("---|" if device != "cpu" else ""))
+    dev = "" if device == "cpu" else "@" + device.split(":")[0]
     pair = {
         "particles-ON2": "torch_nssm-ffbsm",
         "pyParticleEst-full": "torch_nssm-ffbsm",
@@ -192,7 +214,8 @@ def _table(results: list[dict], Ns, Ls, threads: int) -> None:
     for N in Ns:
         for L in Ls:
             ref = by.get(("torch_nssm-ffbsm", N, L))
-            for impl in [f"torch_nssm-{o}" for o in OURS] + list(PEERS):
+            ours_dev = [f"torch_nssm-{o}{dev}" for o in OURS] if dev else []
+            for impl in [f"torch_nssm-{o}" for o in OURS] + ours_dev + list(PEERS):
                 r = by.get((impl, N, L))
                 if r is None:
                     continue
@@ -203,8 +226,13 @@ def _table(results: list[dict], Ns, Ls, threads: int) -> None:
                 )
                 ours = by.get((pair.get(impl, ""), N, L))
                 ratio = f"{r['estep_s'] / ours['estep_s']:.1f}x ({pair[impl][11:]})" if ours else ""
+                if dev:
+                    ours_d = by.get((pair.get(impl, "") + dev, N, L))
+                    ratio += f" | {r['estep_s'] / ours_d['estep_s']:.1f}x" if ours_d else " |"
                 it = "" if np.isnan(r["iter_s"]) else f"{r['iter_s']:.3f}"
                 th = ", ".join(f"{v:.4f}" for v in r["theta"]) if r.get("theta") else ""
+                if dev and impl.startswith("torch_nssm"):
+                    ratio += " |"
                 print(
                     f"| {N} | {L} | {impl} | {r['estep_s']:.3f} | {it} | {r['peak_mb']:.0f} | "
                     f"{rms:.3f} | {th} | {ratio} |"

@@ -27,11 +27,14 @@ from torch_nssm.reproduce import _paper_estimator
 THETA = np.array([0.9, 1.0, 1.0])
 
 
-def run(smoother: str = "mcmc", n_iter: int = 50, n_sets: int = 100, seed: int = 0, n_avg: int = 10) -> dict:
+def run(
+    smoother: str = "mcmc", n_iter: int = 50, n_sets: int = 100, seed: int = 0, n_avg: int = 10, device="cpu"
+) -> dict:
     """Fit the study once; returns timings, estimates and bias norms."""
     torch.set_num_threads(1)
     datas = [make_huang_example(n_samples=1000, random_state=seed + i) for i in range(n_sets)]
     proto = _paper_estimator("student-t", 100, n_iter, seed, smoother=smoother, verbose=0)
+    proto.set_params(device=device)
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -45,7 +48,7 @@ def run(smoother: str = "mcmc", n_iter: int = 50, n_sets: int = 100, seed: int =
     )  # (sets, iterations + 1, 3)
     est = hist[:, -n_avg:].mean(1)
     return dict(
-        smoother=smoother,
+        smoother=smoother if device == "cpu" else f"{smoother} ({device})",
         n_iter=n_iter,
         n_sets=n_sets,
         seconds=secs,
@@ -81,8 +84,9 @@ def main(argv=None) -> int:
     p.add_argument("--smoothers", nargs="+", default=["mcmc", "ffbsm"])
     p.add_argument("--sets", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", help="torch device of the fits, e.g. cuda")
     a = p.parse_args(argv)
-    print_table([run(s, a.iters, a.sets, a.seed) for s in a.smoothers])
+    print_table([run(s, a.iters, a.sets, a.seed, device=a.device) for s in a.smoothers])
     return 0
 
 

@@ -1,0 +1,183 @@
+"""The engine and the estimator on a CUDA device (skipped where torch sees no GPU).
+
+The same exact references as on the CPU (Kalman log-likelihood, RTS smoothed moments), plus what is
+particular to a GPU: every result stays on the device inside the E-step, the number of host
+synchronisations of an E-step does not grow with the record's length (no round-trip per time
+step), and a fitted estimator moves back to the CPU when pickled.
+"""
+
+from __future__ import annotations
+
+import pickle
+import warnings
+from dataclasses import fields, replace
+
+import numpy as np
+import pytest
+import torch
+from conftest import generator, make_linear_system, replicate
+from reference import kalman_filter, rts_smoother, simulate_linear
+from test_filter_smoother import _check_log_likelihood, _check_moments
+
+from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm.datasets import make_paper_example
+from torch_nssm.em import e_step
+from torch_nssm.filtering import particle_filter
+from torch_nssm.model import SequenceBatch, StateSpaceModel
+from torch_nssm.models import PaperObservation, PaperTransition
+from torch_nssm.smoothing import ffbsi, ffbsm, smoothed_moments
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+CUDA = torch.device("cuda")
+N_STEPS = 100
+
+
+def _to(obj, device):
+    """A model (modules and tensors) or a batch moved to ``device``."""
+    if isinstance(obj, StateSpaceModel):
+        kw = {}
+        for fl in fields(obj):
+            v = getattr(obj, fl.name)
+            kw[fl.name] = v.to(device) if isinstance(v, (torch.Tensor, torch.nn.Module)) else v
+        return replace(obj, **kw)
+    return SequenceBatch(obj.u.to(device), obj.y.to(device), obj.lengths.to(device))
+
+
+def _gen(seed: int) -> torch.Generator:
+    return torch.Generator(device=CUDA).manual_seed(seed)
+
+
+@pytest.fixture(scope="module")
+def record():
+    sysm = make_linear_system()
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(N_STEPS, 1))
+    _, y = simulate_linear(*sysm.matrices(), u, rng)
+    return sysm, u, y
+
+
+def test_log_likelihood_matches_kalman_on_cuda(record):
+    sysm, u, y = record
+    exact = kalman_filter(*sysm.matrices(), u, y).log_likelihood
+    filt = particle_filter(_to(sysm.model(), CUDA), _to(replicate(u, y, 20), CUDA), 500, generator=_gen(11))
+    assert filt.particles.device.type == "cuda" and filt.log_likelihood.device.type == "cuda"
+    _check_log_likelihood(filt.log_likelihood.cpu().numpy(), exact)
+
+
+@pytest.mark.parametrize("smoother", ["ffbsm", "reject", "mcmc"])
+def test_smoothers_match_rts_on_cuda(record, smoother):
+    sysm, u, y = record
+    sm, sP = rts_smoother(sysm.A, kalman_filter(*sysm.matrices(), u, y))
+    model, data = _to(sysm.model(), CUDA), _to(replicate(u, y, 16), CUDA)
+    filt = particle_filter(model, data, 250, generator=_gen(21))
+    if smoother == "ffbsm":
+        smooth = ffbsm(model, data, filt)
+    else:
+        smooth = ffbsi(model, data, filt, method=smoother, generator=_gen(23))
+    assert smooth.log_weights.device.type == "cuda"
+    mean, cov = smoothed_moments(filt.particles, smooth.log_weights)
+    _check_moments(mean.cpu(), cov.cpu(), sm, sP)
+
+
+def test_ffbsm_on_cuda_equals_cpu_on_the_same_particles(record):
+    """Same filter particles (moved from the CPU): the exact smoother agrees to rounding."""
+    sysm, u, y = record
+    model, data = sysm.model(), replicate(u, y, 4)
+    filt = particle_filter(model, data, 200, generator=generator(5))
+    ref = ffbsm(model, data, filt)
+    filt_gpu = replace(
+        filt,
+        **{
+            k: getattr(filt, k).to(CUDA)
+            for k in ("particles", "log_weights", "log_likelihood", "ess", "ancestors")
+        },
+    )
+    out = ffbsm(_to(model, CUDA), _to(data, CUDA), filt_gpu)
+    for name in ("log_weights", "next_mean", "transition_weights", "residual_scatter"):
+        a, b = getattr(out, name).cpu(), getattr(ref, name)
+        finite = torch.isfinite(b)
+        torch.testing.assert_close(a[finite], b[finite], rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("smoother", ["ffbsm", "ffbsi", "mcmc"])
+def test_host_synchronisations_do_not_grow_with_length(smoother):
+    """An E-step synchronises with the host a fixed number of times, not once per time step."""
+    data_all = make_paper_example(n_samples=120, outlier_fraction=0.1, random_state=0)
+    model = StateSpaceModel(
+        PaperTransition(0.9, 1.0),
+        PaperObservation(1.0),
+        *(torch.tensor(v, dtype=torch.float64) for v in ([[0.1]], [[0.1]], 3.0, [0.0], [[1.0]])),
+    )
+    model = _to(model, CUDA)
+
+    def n_syncs(n: int) -> int:
+        t = lambda a: torch.as_tensor(np.asarray(a)[:n], dtype=torch.float64).reshape(n, -1)  # noqa: E731
+        data = _to(SequenceBatch.from_sequences([t(data_all.u)], [t(data_all.y)]), CUDA)
+        torch.cuda.synchronize()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            torch.cuda.set_sync_debug_mode("warn")
+            try:
+                e_step(model, data, 64, smoother=smoother, generator=_gen(0))
+            finally:
+                torch.cuda.set_sync_debug_mode("default")
+        return sum("synchroniz" in str(w.message) for w in caught)
+
+    short, long = n_syncs(40), n_syncs(120)
+    assert long <= short + 2, (short, long)
+
+
+@pytest.fixture(scope="module")
+def paper_data():
+    return make_paper_example(n_samples=300, outlier_fraction=0.1, random_state=1)
+
+
+def _estimator(device, smoother="mcmc", n_iter=25):
+    return RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5),
+        PaperObservation(0.5),
+        x0_mean=[0.0],
+        n_particles=100,
+        n_iter=n_iter,
+        tol=0,
+        random_state=0,
+        smoother=smoother,
+        device=device,
+    )
+
+
+@pytest.mark.parametrize("smoother", ["ffbsm", "mcmc"])
+def test_estimator_end_to_end_on_cuda(paper_data, smoother):
+    d = paper_data
+    est = _estimator("cuda", smoother).fit(d.u, d.y)
+    cpu = _estimator("cpu", smoother).fit(d.u, d.y)
+    got = np.array([float(est.f_.a), float(est.f_.b), float(est.g_.c)])
+    ref = np.array([float(cpu.f_.a), float(cpu.f_.b), float(cpu.g_.c)])
+    # different random streams: both near the truth and near each other (Monte Carlo error)
+    np.testing.assert_allclose(got, [0.9, 1.0, 1.0], atol=0.1)
+    np.testing.assert_allclose(got, ref, atol=0.05)
+    assert abs(float(np.asarray(est.Rw_).squeeze()) - float(np.asarray(cpu.Rw_).squeeze())) < 0.05
+    w = np.asarray(est.outlier_weights_).reshape(-1)
+    assert np.isfinite(w).all() and np.median(w[d.outlier_mask]) < 0.3
+    # the rest of the surface runs on the device and returns host arrays
+    for out in (est.predict(d.u), est.predict(d.u, d.y, horizon=3)):
+        assert isinstance(out, np.ndarray) and np.isfinite(out).all()
+    assert 0.0 < est.score(d.u, d.y) <= 1.0
+    sm = est.smooth(d.u, d.y)
+    assert np.isfinite(np.asarray(sm.mean)).all()
+    states, outputs = est.simulate(d.u, n_samples=3)
+    assert np.isfinite(np.asarray(outputs)).all()
+    # a pickled fit loads on a machine without a GPU: its modules are saved on the CPU
+    again = pickle.loads(pickle.dumps(est))
+    assert all(p.device.type == "cpu" for p in again.f_.parameters())
+
+
+def test_fit_independent_on_cuda():
+    datas = [make_paper_example(n_samples=200, outlier_fraction=0.1, random_state=s) for s in range(4)]
+    fits = fit_independent(_estimator("cuda", n_iter=20), [d.u for d in datas], [d.y for d in datas])
+    assert len(fits) == 4
+    theta = np.array([[float(e.f_.a), float(e.f_.b), float(e.g_.c)] for e in fits])
+    assert np.isfinite(theta).all()
+    assert len({tuple(np.round(t, 6)) for t in theta}) == 4  # each data set its own parameters
+    np.testing.assert_allclose(theta.mean(0), [0.9, 1.0, 1.0], atol=0.1)
