@@ -139,6 +139,7 @@ def main(argv=None) -> int:
     p.add_argument("--N", type=int, nargs="*", default=None)
     p.add_argument("--L", type=int, nargs="*", default=None)
     p.add_argument("--ours-only", action="store_true")
+    p.add_argument("--device-only", action="store_true", help="with --device: skip ours on the CPU")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument(
         "--device",
@@ -169,6 +170,8 @@ def main(argv=None) -> int:
             runs = [(impl, "cpu") for impl in impls]
             if a.device != "cpu":
                 runs[len(OURS) : len(OURS)] = [(impl, a.device) for impl in OURS]
+                if a.device_only:
+                    runs = runs[len(OURS) :]
             for impl, device in runs:
                 r = _run(impl, N, L, a.seed, a.threads, a.timeout, device)
                 if r is not None:
