@@ -30,11 +30,12 @@ from scipy import stats
 from scipy.special import logsumexp
 from torch import nn
 
+from torch_nssm._ops import squared_norm
 from torch_nssm.filtering import FilterOutput, NumericalError, particle_filter
 from torch_nssm.model import SequenceBatch, StateSpaceModel
 from torch_nssm.noise import MaskedScale
 from torch_nssm.resampling import RESAMPLING_SCHEMES
-from torch_nssm.smoothing import ffbsi, ffbsm, smoothed_moments
+from torch_nssm.smoothing import _backward_kernels, ffbsi, ffbsm, smoothed_moments
 
 N_STEPS = 100
 
@@ -345,7 +346,7 @@ def ffbsm_case(request):
     ys[0][4] = math.nan
     data = SequenceBatch.from_sequences(us, ys)
     filt = particle_filter(model, data, 50, generator=generator(2))
-    smooth = ffbsm(model, data, filt)
+    smooth = ffbsm(model, data, filt, kernel_dtype=torch.float64)  # the algebra, to rounding
     ref = pairwise_smoother(
         model.f, model.Rw, data.u, data.lengths.tolist(), filt.particles, filt.log_weights
     )
@@ -412,7 +413,7 @@ def test_ffbsm_process_scatter_identity(ffbsm_case):
 @pytest.mark.parametrize("chunk_size", [7, 49])
 def test_ffbsm_chunked_equals_unchunked(ffbsm_case, chunk_size):
     model, data, filt, smooth, _ = ffbsm_case
-    other = ffbsm(model, data, filt, chunk_size=chunk_size)
+    other = ffbsm(model, data, filt, chunk_size=chunk_size, kernel_dtype=torch.float64)
     for name in ("log_weights", "next_mean", "transition_weights", "residual_scatter"):
         a, b = getattr(smooth, name), getattr(other, name)
         np.testing.assert_allclose(
@@ -421,6 +422,64 @@ def test_ffbsm_chunked_equals_unchunked(ffbsm_case, chunk_size):
             rtol=1e-10,
             atol=1e-12,
         )
+
+
+def test_ffbsm_single_precision_kernel_matches_double(ffbsm_case):
+    """The default single-precision kernel: the same statistics to ~1e-6 (Monte Carlo error here is
+    ~1e-1)."""
+    model, data, filt, smooth, _ = ffbsm_case
+    fast = ffbsm(model, data, filt)
+    w64, w32 = torch.exp(smooth.log_weights), torch.exp(fast.log_weights)
+    torch.testing.assert_close(w32, w64, rtol=0, atol=2e-6)
+    torch.testing.assert_close(fast.transition_weights, smooth.transition_weights, rtol=0, atol=2e-6)
+    big = smooth.transition_weights > 1e-3
+    torch.testing.assert_close(fast.next_mean[big], smooth.next_mean[big], rtol=1e-5, atol=1e-5)
+    torch.testing.assert_close(fast.residual_scatter, smooth.residual_scatter, rtol=1e-5, atol=1e-6)
+
+
+def test_ffbsm_single_precision_far_from_the_origin():
+    """States near 1000 with process noise s.d. 0.03: whitened states ~3e4, whose squares no
+    single-precision exponent could hold; centring each step keeps the kernel exact to ~1e-6."""
+    rng = np.random.default_rng(8)
+    model = replace(paper_model(3.0), Rw=torch.tensor([[1e-3]], dtype=DTYPE))
+    model.f.a.data.fill_(1.0)  # a random walk near 1000
+    model = replace(
+        model, x0_mean=torch.tensor([1000.0], dtype=DTYPE), x0_cov=torch.tensor([[0.01]], dtype=DTYPE)
+    )
+    us, ys = simulate(model, [40, 40], rng)
+    data = SequenceBatch.from_sequences([0.01 * u for u in us], ys)
+    filt = particle_filter(model, data, 80, generator=generator(9))
+    exact = ffbsm(model, data, filt, kernel_dtype=torch.float64)
+    fast = ffbsm(model, data, filt)
+    ref = pairwise_smoother(
+        model.f, model.Rw, data.u, data.lengths.tolist(), filt.particles, filt.log_weights
+    )
+    for b, (logWs, _) in enumerate(ref):
+        np.testing.assert_allclose(np.exp(exact.log_weights[:, b].numpy()), np.exp(logWs), atol=1e-10)
+    torch.testing.assert_close(torch.exp(fast.log_weights), torch.exp(exact.log_weights), rtol=0, atol=1e-5)
+    torch.testing.assert_close(fast.next_mean, exact.next_mean, rtol=1e-9, atol=1e-4)
+    torch.testing.assert_close(fast.residual_scatter, exact.residual_scatter, rtol=1e-4, atol=1e-8)
+
+
+@pytest.mark.parametrize("kdtype", [torch.float32, torch.float64])
+def test_backward_kernel_rows_recomputed_where_the_bound_underflows(kdtype):
+    """Rows shifted by an upper bound of their maximum; a row far below its bound (no prediction
+    comes near that particle, or the near ones have tiny weights) is recomputed exactly."""
+    g = torch.Generator().manual_seed(6)
+    B, L, J, nx = 3, 40, 25, 2
+    logW = torch.log_softmax(3.0 * torch.randn(B, L, dtype=DTYPE, generator=g), -1)
+    zf = torch.randn(B, L, nx, dtype=DTYPE, generator=g)
+    zx = torch.randn(B, J, nx, dtype=DTYPE, generator=g)
+    zx[0, 3] += 30.0  # about 450 nats below its bound: all of its row underflows
+    zx[2, 7] -= 16.0  # about 130 nats below: in single precision only
+    a = logW - 0.5 * squared_norm(zf)
+    ref = torch.softmax(a.unsqueeze(-2) + zx @ zf.mT, dim=-1)
+    E, inv_d = _backward_kernels(a, zf, zx, logW, kdtype)
+    K = (E * inv_d.unsqueeze(-1)).to(DTYPE)
+    assert torch.isfinite(K).all()
+    tol = 1e-6 if kdtype == torch.float32 else 1e-12
+    torch.testing.assert_close(K, ref, rtol=0, atol=tol)
+    torch.testing.assert_close(K.sum(-1), torch.ones(B, J, dtype=DTYPE), rtol=0, atol=10 * tol)
 
 
 # --------------------------------------------------------------------------- padding
@@ -460,7 +519,7 @@ def test_padding_is_inert(record):
     runs = {}
     for name, data in (("padded", padded), ("full", full), ("garbage", garbage)):
         filt = particle_filter(model, data, 60, generator=generator(3))
-        runs[name] = (data, filt, ffbsm(model, data, filt, chunk_size=13))
+        runs[name] = (data, filt, ffbsm(model, data, filt, chunk_size=13, kernel_dtype=torch.float64))
     (_, fp, sp), (_, ff, sf), (_, fg, sg) = runs["padded"], runs["full"], runs["garbage"]
     # the same random numbers: row 0 identical, row 1 identical up to its end
     assert torch.equal(fp.particles[:, 0], ff.particles[:, 0])
@@ -477,7 +536,7 @@ def test_padding_is_inert(record):
     torch.testing.assert_close(sp.residual_scatter, sg.residual_scatter, rtol=1e-12, atol=1e-12)
     # the short row smooths as if it were run alone on its n_short samples
     alone = SequenceBatch.from_sequences([ut[:n_short]], [y_other[:n_short]])
-    s_alone = ffbsm(model, alone, _slice_filter(fp, 1, n_short))
+    s_alone = ffbsm(model, alone, _slice_filter(fp, 1, n_short), kernel_dtype=torch.float64)
     torch.testing.assert_close(
         sp.log_weights[:n_short, 1:2], s_alone.log_weights, rtol=1e-12, atol=1e-12
     )

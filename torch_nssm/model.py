@@ -120,6 +120,14 @@ class StateSpaceModel:
         """Mean of the next state for states ``(B, L, nx)`` and inputs ``(B, nu)``."""
         return self.f(x, u.unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))
 
+    def transition_steps(self, x: Tensor, u: Tensor) -> Tensor:
+        """Mean of the next state for the states of several time steps at once: ``x`` ``(t, B, L,
+        nx)``, inputs ``(t, B, nu)``.  ``f`` sees the sequence dimension first (``(B, t, L, nx)``),
+        as batched per-sequence modules require."""
+        xb = x.transpose(0, 1)
+        ub = u.transpose(0, 1).unsqueeze(-2).expand(*xb.shape[:-1], u.shape[-1])
+        return self.f(xb, ub).transpose(0, 1)
+
     def observation(self, x: Tensor, u: Tensor) -> Tensor:
         """Mean of the output for states ``(B, L, nx)`` and inputs ``(B, nu)``."""
         return self.g(x, u.unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))

@@ -79,6 +79,18 @@ def _chunks(n: int, size: int):
         yield slice(start, min(start + size, n))
 
 
+#: Entries of the ``L x L`` backward kernel processed at once (the kernels of several time steps,
+#: or a chunk of rows of one step's): 1 million, 4 MB in single precision, which stays in cache
+#: (measured on a 2-core CPU: blocks of 4 million entries were 1.6-2x slower per entry).
+KERNEL_BLOCK = 1 << 20
+
+_LOG2E = 1.4426950408889634
+#: A kernel row whose sum (relative to the row's upper bound) is below this lost its precision to
+#: underflow and is recomputed exactly (2^-96: its largest entry is ~30 binary orders above the
+#: single-precision denormals).
+_ROW_SUM_FLOOR = 2.0**-96
+
+
 @torch.no_grad()
 def ffbsm(
     model: StateSpaceModel,
@@ -86,8 +98,14 @@ def ffbsm(
     filt: FilterOutput,
     *,
     chunk_size: int | None = None,
+    kernel_dtype: torch.dtype | None = torch.float32,
 ) -> SmootherOutput:
     """Forward-filtering backward-smoothing (marginal and pairwise), exact, ``O(T L^2)``.
+
+    The backward kernels ``K_k`` depend on the filter alone, so they are built for blocks of time
+    steps at once (see :func:`_backward_kernels`); the backward recursion is one small matrix
+    product per step, and everything derived from ``s`` and ``m`` (``xbar``, the process scatter)
+    is computed after it, for all steps together.
 
     Parameters
     ----------
@@ -96,8 +114,16 @@ def ffbsm(
     data : SequenceBatch
     filt : FilterOutput
     chunk_size : int, optional
-        Number of ``x_{k+1}`` particles processed at once; default keeps the per-step work matrix
-        ``B * L * chunk`` under about 4 million entries (32 MB in float64).
+        Number of ``x_{k+1}`` particles (kernel rows) processed at once; by default the kernels of
+        as many steps, or as many rows of one step's kernel, as fit in :data:`KERNEL_BLOCK`
+        entries.
+    kernel_dtype : torch.dtype, optional
+        Precision of the ``L x L`` kernel and of its products (``None``: the particles' dtype).
+        Single precision (the default) halves the memory traffic of the dominant ``O(L^2)`` work;
+        the states are centred on each step's filter mean before whitening, so the exponents
+        carry no cancellation from large state values, and every statistic derived from the
+        products is accumulated in the particles' dtype.  Relative rounding ~1e-7, far below the
+        Monte Carlo error ``O(1/sqrt(L))`` (tests/test_filter_smoother.py compares both).
 
     Returns
     -------
@@ -105,44 +131,149 @@ def ffbsm(
     """
     X, logW = filt.particles, filt.log_weights
     T, B, L, nx = X.shape
-    if chunk_size is None:
-        chunk_size = max(1, min(L, 4_000_000 // max(1, B * L)))
+    dtype, device = X.dtype, X.device
+    kdtype = dtype if kernel_dtype is None else kernel_dtype
+    rows = min(L, chunk_size or max(1, KERNEL_BLOCK // max(1, B * L)))
+    whole = rows >= L  # whole kernels of one or more steps per block, else chunks of rows
     Cinv_t = _whitening(model, B, X)
     trans = data.transition_mask  # (T-1, B)
 
     log_ws = torch.empty_like(logW)
     log_ws[T - 1] = logW[T - 1]
-    next_mean = torch.empty(T - 1, B, L, nx, dtype=X.dtype, device=X.device)
-    trans_w = torch.zeros(T - 1, B, L, dtype=X.dtype, device=X.device)
-    scatter = torch.zeros(B, nx, nx, dtype=X.dtype, device=X.device)
+    # [s, m^T] of every step (T-1, B, 1 + nx, L), m about the step's centre c (centres)
+    sm_all = torch.empty(T - 1, B, 1 + nx, L, dtype=kdtype, device=device)
+    centres = torch.empty(T - 1, B, 1, nx, dtype=dtype, device=device)
+    for blk in reversed(list(time_blocks(T - 1, B * L * L if whole else KERNEL_BLOCK, KERNEL_BLOCK))):
+        zf, zx, centre = _centred_whitened(model, data, X, logW, Cinv_t, blk)
+        centres[blk] = centre
+        a = logW[blk] - 0.5 * squared_norm(zf)  # (t, B, L)
+        # rows [w_j, w_j (x_j - c)^T]: one product with the kernel gives s and m together, and
+        # multiplying from the left reads K in its stored layout (no transposed copy)
+        dx = (X[blk.start + 1 : blk.stop + 1] - centre).to(kdtype).transpose(-1, -2)  # (t, B, nx, L)
+        if whole:
+            K, inv_d = _backward_kernels(a, zf, zx, logW[blk], kdtype)  # (t, B, L, L), (t, B, L)
+        for k in range(blk.stop - 1, blk.start - 1, -1):
+            i = k - blk.start
+            w = torch.exp(log_ws[k + 1])
+            w = torch.where(w < TINY_WEIGHT, 0.0, w).to(kdtype).unsqueeze(1)  # (B, 1, L)
+            wx = torch.cat([w, w * dx[i]], 1)  # (B, 1 + nx, L)
+            if whole:
+                torch.bmm(wx * inv_d[i].unsqueeze(1), K[i], out=sm_all[k])
+            else:
+                sm = torch.zeros(B, 1 + nx, L, dtype=kdtype, device=device)
+                for sl in _chunks(L, rows):
+                    Kc, inv_dc = _backward_kernels(a[i], zf[i], zx[i][:, sl], logW[k], kdtype)
+                    sm = torch.baddbmm(sm, wx[:, :, sl] * inv_dc.unsqueeze(1), Kc)
+                sm_all[k] = sm
+            log_s = torch.log(sm_all[k, :, 0].to(dtype))
+            log_s = log_s - torch.logsumexp(log_s, dim=-1, keepdim=True)  # guard rounding drift
+            log_ws[k] = torch.where(trans[k].unsqueeze(-1), log_s, logW[k])
+    return _pairwise_statistics(data, X, log_ws, sm_all, centres)
 
-    for k in range(T - 2, -1, -1):
-        x_next = X[k + 1]
-        w_next = torch.exp(log_ws[k + 1])
-        w_next = torch.where(w_next < TINY_WEIGHT, torch.zeros_like(w_next), w_next)
-        zf = _whitened(model.transition(X[k], data.u[k]), Cinv_t)  # (B, L, nx)
-        zx = _whitened(x_next, Cinv_t)
-        a = logW[k] - 0.5 * squared_norm(zf)  # (B, L)
-        # rows [w_j, w_j x_j^T] (B, 1 + nx, L): one product with the kernel gives s and m together,
-        # and multiplying from the left reads K in its stored layout (no transposed copy)
-        wx = torch.cat([w_next.unsqueeze(1), (w_next.unsqueeze(-1) * x_next).transpose(-1, -2)], 1)
-        sm = torch.zeros(B, 1 + nx, L, dtype=X.dtype, device=X.device)
-        for sl in _chunks(L, chunk_size):
-            # (B, J, L_i): the softmax runs over the contiguous last dimension (i)
-            K = torch.softmax(torch.baddbmm(a.unsqueeze(1), zx[:, sl], zf.transpose(-1, -2)), dim=-1)
-            sm = sm + wx[:, :, sl] @ K
-        s, m = sm[:, 0], sm[:, 1:].transpose(-1, -2)
-        valid = trans[k]  # (B,)
+
+def _backward_kernels(
+    a: Tensor, zf: Tensor, zx: Tensor, logW: Tensor, kdtype: torch.dtype
+) -> tuple[Tensor, Tensor]:
+    """Backward kernels ``K^{ji} = softmax_i(a_i + z_x^j . z_f^i)`` as unnormalised rows and their
+    inverse row sums: ``E`` ``(..., J, L)`` and ``1 / sum_i E^{ji}`` ``(..., J)``, so that
+    ``K = E / sum_i E`` (the division is applied to the small left factor of the next product).
+
+    On the CPU the rows are shifted by an upper bound of their maximum instead of the maximum
+    itself (no extra pass over ``E``): ``a_i + z_x^j . z_f^i <= max_i log W_i + |z_x^j|^2 / 2``,
+    and the whole exponent is one matrix product with two extra columns, in base 2 (``exp2`` is
+    ~4x cheaper than ``exp`` in single precision).  A row whose sum falls below
+    :data:`_ROW_SUM_FLOOR` (all of it far below the bound: rare, a particle no prediction
+    reaches) is recomputed exactly with the row maximum.  On other devices (GPUs, where the
+    passes are cheap and a data-dependent fix-up would cost a host synchronisation) it is the
+    softmax itself.
+
+    Parameters
+    ----------
+    a : Tensor, shape (..., L)
+        ``log W_k^i - |z_f^i|^2 / 2`` (particles' dtype).
+    zf : Tensor, shape (..., L, nx)
+    zx : Tensor, shape (..., J, nx)
+    logW : Tensor, shape (..., L)
+        The filter's log-weights (for the bound).
+    kdtype : torch.dtype
+    """
+    if zf.device.type != "cpu":
+        logits = torch.baddbmm(
+            a.reshape(-1, 1, a.shape[-1]).to(kdtype),
+            zx.reshape(-1, *zx.shape[-2:]).to(kdtype),
+            zf.reshape(-1, *zf.shape[-2:]).to(kdtype).mT,
+        )
+        K = torch.softmax(logits, dim=-1).view(*zx.shape[:-1], a.shape[-1])
+        return K, torch.ones(K.shape[:-1], dtype=kdtype, device=K.device)
+    bound = logW.amax(-1, keepdim=True) + 0.5 * squared_norm(zx)  # (..., J)
+    ones_f = torch.ones_like(a).unsqueeze(-1)
+    ones_x = torch.ones_like(bound).unsqueeze(-1)
+    left = torch.cat([zx * _LOG2E, -_LOG2E * bound.unsqueeze(-1), ones_x], -1).to(kdtype)
+    right = torch.cat([zf, ones_f, _LOG2E * a.unsqueeze(-1)], -1).to(kdtype)
+    E = torch.bmm(left.reshape(-1, *left.shape[-2:]), right.reshape(-1, *right.shape[-2:]).mT)
+    E = torch.exp2_(E).view(*zx.shape[:-1], a.shape[-1])
+    d = E.sum(-1)
+    low = torch.nonzero((d < _ROW_SUM_FLOOR).view(-1)).squeeze(-1)  # flat row numbers
+    if low.numel():
+        J, L = zx.shape[-2], a.shape[-1]
+        batch = low // J  # the kernel (step, sequence) each row belongs to
+        logits = a.reshape(-1, L)[batch] + (
+            zf.reshape(-1, L, zf.shape[-1])[batch] @ zx.reshape(-1, zx.shape[-1])[low].unsqueeze(-1)
+        ).squeeze(-1)
+        E.view(-1, L)[low] = torch.softmax(logits, dim=-1).to(kdtype)  # in full precision
+        d.view(-1)[low] = 1.0
+    return E, 1.0 / d
+
+
+def _centred_whitened(
+    model: StateSpaceModel, data: SequenceBatch, X: Tensor, logW: Tensor, Cinv_t: Tensor, blk: slice
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Whitened predictions ``z_f = C^-1 (f(x_k^i) - c)`` and next states ``z_x = C^-1 (x_{k+1}^j -
+    c)`` of the steps ``blk``, centred on ``c_k`` = the filter mean of ``x_{k+1}`` (t, B, 1, nx).
+
+    Differences ``z_x - z_f`` are unchanged by the common shift; the centring keeps the expanded
+    exponent ``z_x . z_f - |z_f|^2 / 2`` free of cancellation when states are far from 0.
+    """
+    X_next = X[blk.start + 1 : blk.stop + 1]
+    w = torch.softmax(logW[blk.start + 1 : blk.stop + 1], dim=-1).unsqueeze(-1)
+    c = (w * X_next).sum(-2, keepdim=True)  # (t, B, 1, nx)
+    fx = model.transition_steps(X[blk], data.u[blk])
+    return _whitened(fx - c, Cinv_t), _whitened(X_next - c, Cinv_t), c
+
+
+def _pairwise_statistics(
+    data: SequenceBatch, X: Tensor, log_ws: Tensor, sm_all: Tensor, centres: Tensor
+) -> SmootherOutput:
+    """``xbar``, the transition weights and the process scatter from FFBSm's ``s`` and ``m``.
+
+    ``m`` is about the centre ``c_k`` of each step (:func:`_centred_whitened`); the scatter is
+    computed in centred form, ``sum_j w_j d_j d_j^T - sum_i s_i e_i e_i^T`` with ``d = x - c``,
+    ``e = xbar - c`` (the same quantity: ``sum_i K^{ij} = 1``), so nothing of size ``|c|^2``
+    cancels.  Done for blocks of steps after the backward pass.
+    """
+    T, B, L, nx = X.shape
+    dtype = X.dtype
+    trans = data.transition_mask
+    next_mean = torch.empty(T - 1, B, L, nx, dtype=dtype, device=X.device)
+    trans_w = torch.empty(T - 1, B, L, dtype=dtype, device=X.device)
+    scatter = torch.zeros(B, nx, nx, dtype=dtype, device=X.device)
+    for blk in time_blocks(T - 1, B * L):
+        nxt = slice(blk.start + 1, blk.stop + 1)
+        valid = trans[blk]  # (t, B)
+        centre = centres[blk]  # (t, B, 1, nx)
+        sm = sm_all[blk].to(dtype)
+        s, e = sm[:, :, 0], sm[:, :, 1:].transpose(-1, -2)  # (t, B, L), (t, B, L, nx)
         pos = s > 0
-        xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[k])
-        S_next = torch.einsum("bj,bjp,bjq->bpq", w_next, x_next, x_next)
-        MmT = torch.einsum("bi,bip,biq->bpq", s, xbar, xbar)
-        scatter = scatter + torch.where(valid.view(B, 1, 1), S_next - MmT, torch.zeros_like(S_next))
-        log_s = torch.log(s)
-        log_s = log_s - torch.logsumexp(log_s, dim=-1, keepdim=True)  # guard rounding drift
-        log_ws[k] = torch.where(valid.unsqueeze(-1), log_s, logW[k])
-        next_mean[k] = xbar
-        trans_w[k] = torch.where(valid.unsqueeze(-1), s, torch.zeros_like(s))
+        e = torch.where(pos.unsqueeze(-1), e / torch.where(pos, s, 1.0).unsqueeze(-1), X[blk] - centre)
+        s = s / s.sum(-1, keepdim=True)  # sums to 1 like W_{k|N} (the kernel's rounding aside)
+        w_next = torch.exp(log_ws[nxt])
+        w_next = torch.where(w_next < TINY_WEIGHT, 0.0, w_next).unsqueeze(-1)
+        d = X[nxt] - centre
+        S_next = (w_next * d).transpose(-1, -2) @ d  # (t, B, nx, nx)
+        MmT = (s.unsqueeze(-1) * e).transpose(-1, -2) @ e
+        scatter += torch.where(valid.view(*valid.shape, 1, 1), S_next - MmT, 0.0).sum(0)
+        next_mean[blk] = e + centre
+        trans_w[blk] = torch.where(valid.unsqueeze(-1), s, 0.0)
     return SmootherOutput(log_ws, next_mean, trans_w, scatter)
 
 
@@ -170,7 +301,7 @@ def _whitening(model: StateSpaceModel, B: int, like: Tensor) -> Tensor:
 
 
 def _whitened(x: Tensor, Cinv_t: Tensor) -> Tensor:
-    """``x @ Cinv_t`` for ``x`` ``(B, L, nx)`` and ``Cinv_t`` ``(B, nx, nx)``, elementwise."""
+    """``x @ Cinv_t`` for ``x`` ``(..., B, L, nx)`` and ``Cinv_t`` ``(B, nx, nx)``, elementwise."""
     return small_matmul(x.unsqueeze(-2), Cinv_t.unsqueeze(-3)).squeeze(-2)
 
 
