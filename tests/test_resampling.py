@@ -176,3 +176,29 @@ def test_get_resampler():
     assert set(RESAMPLING_SCHEMES) == {"multinomial", "systematic", "stratified", "residual"}
     with pytest.raises(ValueError, match="resampling must be one of"):
         get_resampler("bogus")
+
+
+@pytest.mark.parametrize("search_work", [0.0, math.inf])
+@pytest.mark.parametrize("n", [None, 7, 23])
+def test_systematic_search_and_scatter_paths(monkeypatch, search_work, n):
+    """Both implementations of systematic resampling (binary search for small problems, scatter and
+    cumulative sum for large ones) are unbiased and give the same indices."""
+    from torch_nssm import resampling
+
+    B, L = 40000, RAW.size
+    lw = _log_weights(B)
+    monkeypatch.setattr(resampling, "SEARCH_WORK", search_work)
+    idx = resampling.systematic(lw, n, generator=torch.Generator().manual_seed(7))
+    M = L if n is None else n
+    counts = _counts(idx, L)
+    assert torch.all(counts.sum(1) == M) and counts[:, 3].sum() == 0
+    expected = M * torch.softmax(lw[0], -1)
+    se = counts.std(0) / math.sqrt(B)
+    assert torch.all((counts.mean(0) - expected).abs() <= 4.5 * se + 1e-12)
+    assert (counts - expected).abs().max() < 1.0 + 1e-9
+    # same uniforms through the other path: same indices, also from unnormalised cumulative sums
+    u = torch.rand(B, 1, dtype=DTYPE, generator=torch.Generator().manual_seed(8))
+    cumw = torch.cumsum(torch.exp(lw - 3.0), dim=-1)
+    a = resampling.systematic_from_cumsum(cumw, u, n)
+    monkeypatch.setattr(resampling, "SEARCH_WORK", 0.0 if search_work else math.inf)  # the other path
+    assert torch.equal(a, resampling.systematic_from_cumsum(cumw, u, n))

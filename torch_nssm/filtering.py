@@ -8,14 +8,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Callable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from ._ops import small_matmul, squared_norm
 from .model import SequenceBatch, StateSpaceModel
 from .noise import MaskedScale, masked_scale, student_t_log_prob
-from .resampling import effective_sample_size, get_resampler
+from .parametric import LinearInParameters
+from .resampling import get_resampler, systematic, systematic_from_cumsum, systematic_grid
 
 __all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
 
@@ -68,12 +70,48 @@ class FilterOutput:
         )
 
 
-def _mahalanobis(model: StateSpaceModel, y0: Tensor, C: Tensor, u: Tensor, x: Tensor) -> Tensor:
+def _mahalanobis(y0: Tensor, C: Tensor, gx: Tensor) -> Tensor:
     """Squared whitened residual norms ``delta2`` (B, L) of one step's outputs ``y0`` (B, p, missing
-    entries 0) for particles ``x`` (B, L, nx), with the whitener ``C`` (B, p, p) of
-    :meth:`MaskedScale.whitener`."""
-    r = y0.unsqueeze(-2) - model.observation(x, u)  # (B, L, p)
+    entries 0) for the particles' predicted outputs ``gx`` (B, L, p), with the whitener ``C``
+    (B, p, p) of :meth:`MaskedScale.whitener`."""
+    r = y0.unsqueeze(-2) - gx  # (B, L, p)
     return squared_norm(small_matmul(C.unsqueeze(-3), r.unsqueeze(-1)).squeeze(-1))
+
+
+def _process_noise(model: StateSpaceModel, L: int, generator, out: Tensor) -> None:
+    """All process-noise draws ``w ~ N(0, Rw)`` at once into ``out`` ``(T - 1, B, L, nx)``.
+
+    Standard normals are drawn in single precision (2x faster than double on CPU; the 24-bit draws
+    are more than enough for Monte Carlo noise) and shaped by ``chol(Rw)`` elementwise (tiny
+    matrices) in the output's dtype.
+    """
+    _, B, _, nx = out.shape
+    Cw = torch.linalg.cholesky(model.per_sequence("Rw", B)).to(out.dtype)
+    noise_dtype = torch.float32 if out.dtype == torch.float64 else out.dtype
+    noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
+    if nx == 1:
+        torch.mul(noise, Cw.view(B, 1, 1), out=out)
+    else:
+        torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
+
+
+def _fixed_parameters(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
+    """``module`` as a function of ``(x, u)``, with a :class:`LinearInParameters` module's flat
+    ``theta`` gathered once instead of at every call (the parameters do not change during a
+    filter pass; :meth:`LinearInParameters.theta` concatenates them, ~4 us a call)."""
+    if (
+        isinstance(module, LinearInParameters)
+        and type(module).forward is LinearInParameters.forward
+        and not (module._forward_hooks or module._forward_pre_hooks)
+    ):
+        theta = module.theta()
+
+        def forward(x: Tensor, u: Tensor) -> Tensor:
+            Phi, offset = module.features(x, u)
+            return offset + Phi @ theta  # (..., d, P) @ (P,): LinearInParameters.forward
+
+        return forward
+    return module
 
 
 def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -128,61 +166,100 @@ def particle_filter(
         If the model or the weights produce non-finite values (e.g. ``f`` or ``g`` return NaN).
     """
     resample = get_resampler(resampling)
+    fast_systematic = resample is systematic
     T, B = data.n_steps, data.n_sequences
     L = n_particles
     scale = masked_scale(model.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
-    Cw = torch.linalg.cholesky(model.per_sequence("Rw", B))
-    x = sample_initial_state(model, B, L, generator)
-    nx = x.shape[-1]
-    particles = torch.empty(T, B, L, nx, dtype=x.dtype, device=x.device)
-    log_weights = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
-    ancestors = torch.empty(T, B, L, dtype=torch.long, device=x.device)
-    log_lik = torch.zeros(B, dtype=x.dtype, device=x.device)
-    log_w = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
-    arange = torch.arange(L, device=x.device).expand(B, L)
+    x0 = sample_initial_state(model, B, L, generator)
+    nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
+    # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
+    particles = torch.empty(T, B, L, nx, dtype=dtype, device=device)
+    log_weights = torch.empty(T, B, L, dtype=dtype, device=device)
+    ancestors = torch.empty(T, B, L, dtype=torch.long, device=device)
+    delta2_all = torch.empty(T, B, L, dtype=dtype, device=device)
+    particles[0] = x0
+    arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange
+    if T > 1:
+        _process_noise(model, L, generator, out=particles[1:])  # x_k = f(.) + noise, added in place
+    always = ess_threshold >= 1.0
+    # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
+    if fast_systematic:
+        uniforms = torch.rand(max(T - 1, 0), B, 1, dtype=dtype, device=device, generator=generator).unbind(0)
+        grid = systematic_grid(B, L, dtype, device)
+        ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
     const, coef, nu = _log_density_terms(model, scale, B)
     gaussian = bool(torch.isinf(nu).all())
-    always = ess_threshold >= 1.0
-    log_uniform = torch.full((B, L), -math.log(L), dtype=x.dtype, device=x.device)
-    # All process-noise draws at once, shaped by chol(Rw) elementwise (tiny matrices).  Standard
-    # normals are drawn in single precision (2x faster than double on CPU; the 24-bit draws are
-    # more than enough for Monte Carlo noise) and used in the model's dtype.
-    noise_dtype = torch.float32 if x.dtype == torch.float64 else x.dtype
-    noise = torch.randn(max(T - 1, 0), B, L, nx, dtype=noise_dtype, device=x.device, generator=generator)
-    noise = noise.to(x.dtype)
-    if nx == 1:
-        noise = noise * Cw.view(B, 1, 1)
-    else:
-        noise = (noise.unsqueeze(-2) * Cw.unsqueeze(-3)).sum(-1)  # noise @ Cw^T
-    delta2_all = torch.empty(T, B, L, dtype=x.dtype, device=x.device)
-    ess = torch.empty(T, B, dtype=x.dtype, device=x.device)
     y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
+    p = y0.shape[-1]
+    if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
+        c1 = C[..., 0]  # (T, B, 1)
+        cy = (c1 * y0).unsqueeze(-1).unbind(0)  # (B, 1, 1) each
+        c1 = c1.unsqueeze(-1).unbind(0)
+    # Per-step terms: max logit ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the
+    # log-likelihood, the normalisation of the stored log-weights and the ESS follow after the loop.
+    m_all = torch.empty(T, B, 1, dtype=dtype, device=device)
+    s_all = torch.empty(T, B, 1, dtype=dtype, device=device)
+    norm_all = torch.empty(T, B, 1, dtype=dtype, device=device)
+    # Views of every step, made once (indexing a list is free, a tensor select is an operation).
+    X, LW, A, D = particles.unbind(0), log_weights.unbind(0), ancestors.unbind(0), delta2_all.unbind(0)
+    A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
+    D3 = delta2_all.unsqueeze(-1).unbind(0)
+    M, S, NORM = m_all.unbind(0), s_all.unbind(0), norm_all.unbind(0)
+    U = data.u.unsqueeze(-2).expand(T, B, L, data.u.shape[-1]).unbind(0)  # model.transition's expand
+    f, g = _fixed_parameters(model.f), _fixed_parameters(model.g)
+    if not gaussian:
+        neg_coef = (-coef).unsqueeze(-1).unbind(0)
+        inv_nu = (1.0 / nu).unsqueeze(-1).unbind(0)
+    log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
+    log_w = log_uniform  # normalised log-weights (needed only without ``always``)
+    e = log_uniform  # exp(logit - m) of the previous step (set at k = 0 before its first use)
     for k in range(T):
+        x = X[k]
         if k > 0:
-            if always:
-                anc = resample(log_w, generator=generator)
-                log_w = log_uniform
-            else:
-                do = (effective_sample_size(log_w) < ess_threshold * L).unsqueeze(-1)  # (B, 1)
-                anc = torch.where(do, resample(log_w, generator=generator), arange)
+            if fast_systematic:  # straight into ``ancestors`` when resampling at every step
+                cumw = torch.cumsum(e, dim=-1)
+                out = A[k] if always else None
+                anc = systematic_from_cumsum(cumw, uniforms[k - 1], out=out, grid=grid, ones=ones)
+            else:  # the schemes normalise (softmax): the stored logit - m will do
+                anc = resample(LW[k - 1] if always else log_w, generator=generator)
+            if always and not fast_systematic:
+                A[k].copy_(anc)
+            elif not always:
+                ess_prev = (S[k - 1] / NORM[k - 1]).square_()
+                do = ess_prev < ess_threshold * L  # (B, 1)
+                torch.where(do, anc, arange, out=A[k])
                 log_w = torch.where(do, log_uniform, log_w)
-            ancestors[k] = anc
-            x = torch.gather(x, 1, anc.unsqueeze(-1).expand(B, L, nx))
-            x = model.transition(x, data.u[k - 1]) + noise[k - 1]
-        delta2 = _mahalanobis(model, y0[k], C[k], data.u[k], x)
-        delta2_all[k] = delta2
-        if gaussian:
-            logp = const[k].unsqueeze(-1) - 0.5 * delta2
+            x.add_(f(torch.gather(X[k - 1], 1, A_gather[k]), U[k - 1]))
+        gx = g(x, U[k])
+        if p == 1:
+            r = torch.addcmul(cy[k], gx, c1[k], value=-1.0)
+            torch.mul(r, r, out=D3[k])
+            delta2 = D[k]
         else:
-            logp = const[k].unsqueeze(-1) - coef[k].unsqueeze(-1) * torch.log1p(delta2 / nu[k].unsqueeze(-1))
-        logits = log_w + logp
-        lse = torch.logsumexp(logits, dim=-1)
-        log_lik = log_lik + lse
-        log_w = logits - lse.unsqueeze(-1)
-        particles[k] = x
-        log_weights[k] = log_w
-        ess[k] = effective_sample_size(log_w)
+            delta2 = D[k]
+            delta2.copy_(_mahalanobis(y0[k], C[k], gx))
+        if gaussian:
+            logits = delta2 * -0.5
+        else:
+            logits = torch.log1p_(delta2 * inv_nu[k]).mul_(neg_coef[k])
+        if not always:
+            logits = logits.add_(log_w)
+        m = torch.amax(logits, dim=-1, keepdim=True, out=M[k])
+        z = torch.sub(logits, m, out=LW[k])
+        e = torch.exp(z)
+        s = torch.sum(e, dim=-1, keepdim=True, out=S[k])
+        torch.linalg.vector_norm(e, dim=-1, keepdim=True, out=NORM[k])
+        if not always:
+            log_w = z - torch.log(s)
+    log_s = torch.log(s_all)
+    log_weights.sub_(log_s)
+    ess = (s_all / norm_all).square_().squeeze(-1)
+    # log p(y_k | y_<k) = const_k + log sum_l W_{k-1,l} exp(logit_kl) = const_k + m_k + log s_k
+    # (- log L when the previous weights are uniform after resampling at every step)
+    log_lik = (const + (m_all + log_s).squeeze(-1)).sum(0)
+    if always:
+        log_lik = log_lik - T * math.log(L)
     if not torch.isfinite(log_lik).all():
         bad = (~torch.isfinite(log_weights).any(-1)) | (~torch.isfinite(particles).all(-1).all(-1))
         steps = torch.nonzero(bad.any(-1)).flatten().tolist()
