@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
-from torch_nssm.smoothing import _independent_mh, _log_kernel, _proposals
+from torch_nssm.smoothing import _cdf, _draw_cdf, _independent_mh, _log_kernel, _proposals
 
 
 @pytest.mark.parametrize(
@@ -77,3 +77,22 @@ def test_independent_mh_leaves_the_backward_kernel_invariant_and_converges():
         -0.5 * (0.3 - zf[0, 0, 0].item()) ** 2, abs=1e-12
     )
     assert math.isfinite(float(log_pi.sum()))
+
+
+@pytest.mark.parametrize("case", ["spread", "degenerate", "zeros"])
+def test_guide_table_draws_equal_the_binary_search(case):
+    """The guide-table inverse CDF returns exactly ``searchsorted(cdf, u, right=True)``, also where
+    crowded buckets (many tiny or zero weights) need its fallback search."""
+    g = torch.Generator().manual_seed(7)
+    R, L, n = 64, 300, 500
+    log_w = torch.randn(R, L, dtype=torch.float64, generator=g)
+    if case == "degenerate":  # a few particles hold nearly all the weight
+        log_w = 40.0 * log_w
+    if case == "zeros":  # zero weights: flat stretches of the cdf
+        log_w[:, ::3] = -math.inf
+        log_w[:5, 2:] = -math.inf  # all the weight on particle 1
+    cdf = _cdf(log_w)
+    u = torch.rand(R, n, dtype=torch.float64, generator=g)
+    u[:, :3] = torch.tensor([0.0, 0.5, 1.0 - 2.0**-53], dtype=torch.float64)
+    ref = torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1)
+    assert torch.equal(_draw_cdf(cdf, u), ref)
