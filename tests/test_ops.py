@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
-from torch_nssm.smoothing import _cdf, _draw_cdf, _independent_mh, _log_kernel, _proposals
+from torch_nssm.smoothing import _GUIDE_MIN_DRAWS, _cdf, _draw_cdf, _independent_mh, _log_kernel, _proposals
 
 
 @pytest.mark.parametrize(
@@ -95,4 +95,5 @@ def test_guide_table_draws_equal_the_binary_search(case):
     u = torch.rand(R, n, dtype=torch.float64, generator=g)
     u[:, :3] = torch.tensor([0.0, 0.5, 1.0 - 2.0**-53], dtype=torch.float64)
     ref = torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1)
+    assert u.numel() >= _GUIDE_MIN_DRAWS  # the guide-table path
     assert torch.equal(_draw_cdf(cdf, u), ref)

@@ -311,6 +311,10 @@ def _cdf(log_weights: Tensor) -> Tensor:
     return cdf / cdf[..., -1:]
 
 
+#: Below this many draws per call the guide table's dozen operations cost more than they save.
+_GUIDE_MIN_DRAWS = 4096
+
+
 def _draw_cdf(cdf: Tensor, u: Tensor) -> Tensor:
     """Inverse-CDF indices ``#{i < L-1: cdf_i <= u}`` for uniforms ``u`` ``(R, n)`` and rows of a
     cumulative-weight table ``cdf`` ``(R, L)`` (ending at 1): ``n`` i.i.d. draws per row.
@@ -319,9 +323,12 @@ def _draw_cdf(cdf: Tensor, u: Tensor) -> Tensor:
     costs 70-100 ns a draw at L = 1000-3000).  A guide table (Chen & Asau 1974) gives, for the
     bucket ``floor(L u)`` of each uniform, the first index that can hold it and the bucket's end;
     four vectorised steps forward finish almost every draw, and the few left (buckets crowded
-    with tiny weights) are finished by a binary search between those two bounds.
+    with tiny weights) are finished by a binary search between those two bounds.  Calls with
+    fewer than :data:`_GUIDE_MIN_DRAWS` draws (the rejection sampler's tries) use ``searchsorted``.
     """
     R, L = cdf.shape
+    if u.numel() < _GUIDE_MIN_DRAWS:
+        return torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1)
     key = (cdf[:, :-1] * L).long().clamp_(max=L - 1)  # bucket of each boundary
     lo = torch.zeros(R, L + 1, dtype=torch.long, device=cdf.device)
     lo = lo.scatter_add_(1, key + 1, torch.ones_like(key)).cumsum_(1)  # boundaries before bucket b
@@ -490,9 +497,9 @@ def _reject(zf: Tensor, zx: Tensor, logW: Tensor, cdf: Tensor, max_tries: int, g
     J = torch.zeros(B, M, dtype=torch.long, device=zx.device)
     pending = torch.ones(B, M, dtype=torch.bool, device=zx.device)
     for _ in range(max_tries):
-        u = torch.rand(B, 2, M, dtype=zx.dtype, device=zx.device, generator=generator)
-        prop = _draw_cdf(cdf, u[:, 0])
-        accept = pending & (torch.log(u[:, 1]) < _log_kernel(zf, prop, zx))
+        u = torch.rand(2, B, M, dtype=zx.dtype, device=zx.device, generator=generator)
+        prop = _draw_cdf(cdf, u[0])
+        accept = pending & (torch.log(u[1]) < _log_kernel(zf, prop, zx))
         J = torch.where(accept, prop, J)
         pending = pending & ~accept
         if not bool(pending.any()):
