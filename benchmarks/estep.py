@@ -82,11 +82,11 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
 
         gen = torch.Generator(device=dev).manual_seed(seed)
         e_step(model(), batch, 50, smoother=impl, generator=gen)  # warm-up (lazy imports)
-        e_step(model(), batch, L, smoother=impl, generator=gen)  # warm-up at size (allocator, kernels)
-        base = _rss_mb()
+        base = _rss_mb()  # peak growth of a full-size E-step over this (the warm-up below included)
         if cuda:
             torch.cuda.reset_peak_memory_stats()
             base_gpu = torch.cuda.memory_allocated()
+        e_step(model(), batch, L, smoother=impl, generator=gen)  # warm-up at size (allocator, kernels)
         t_e, spent = float("inf"), 0.0
         for i in range(REPEAT):
             if i > 0 and spent >= REPEAT_BUDGET_S:
