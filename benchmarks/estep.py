@@ -16,7 +16,8 @@ Each configuration is timed as the fastest of up to 3 passes while the time spen
 (ours after a warm-up at the same size; the peers by the same rule, ``peers._run_measured``).
 torch runs with ``THP_MEM_ALLOC_ENABLE=1`` (transparent huge pages for its large CPU tensors, as
 numpy has by default on Linux: first-touch page faults of the fresh (T, L) outputs otherwise cost
-~25 % of an E-step at L = 3000); ``--no-thp`` turns it off.  ``--device cuda`` adds our smoothers
+~15 % of the filter and the MCMC smoother at N * L >= 10^6, measured on a 2-core CPU);
+``--no-thp`` turns it off.  ``--device cuda`` adds our smoothers
 on a GPU (``--device-only``: only there).
 
 The peers are the optional ``bench`` extra (see README_peers.md for the install command).
