@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 import torch
+from reference import simulate_linear
 from torch import nn
 
 from torch_nssm.model import SequenceBatch, StateSpaceModel
@@ -208,6 +209,20 @@ def make_linear_system() -> LinearSystem:
 @pytest.fixture(scope="session")
 def linear_system() -> LinearSystem:
     return make_linear_system()
+
+
+#: Length of the linear-Gaussian test record.
+N_STEPS = 100
+
+
+@pytest.fixture(scope="session")
+def record():
+    """The linear-Gaussian system and one record of it: ``(system, u (N_STEPS, 1), y (N_STEPS, 2))``."""
+    sysm = make_linear_system()
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(N_STEPS, 1))
+    _, y = simulate_linear(*sysm.matrices(), u, rng)
+    return sysm, u, y
 
 
 def replicate(u: np.ndarray, y: np.ndarray, n_copies: int) -> SequenceBatch:

@@ -16,8 +16,8 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 import torch
-from conftest import generator, make_linear_system, replicate
-from reference import kalman_filter, rts_smoother, simulate_linear
+from conftest import generator, replicate
+from reference import kalman_filter, rts_smoother
 from test_filter_smoother import _check_log_likelihood, _check_moments
 
 from torch_nssm import RobustNSSMEstimator, fit_independent
@@ -34,7 +34,6 @@ CUDA = torch.device(os.environ.get("TORCH_NSSM_TEST_DEVICE", "cuda"))
 pytestmark = pytest.mark.skipif(
     CUDA.type == "cuda" and not torch.cuda.is_available(), reason="no CUDA device"
 )
-N_STEPS = 100
 
 
 def _to(obj, device):
@@ -50,15 +49,6 @@ def _to(obj, device):
 
 def _gen(seed: int) -> torch.Generator:
     return torch.Generator(device=CUDA).manual_seed(seed)
-
-
-@pytest.fixture(scope="module")
-def record():
-    sysm = make_linear_system()
-    rng = np.random.default_rng(0)
-    u = rng.normal(size=(N_STEPS, 1))
-    _, y = simulate_linear(*sysm.matrices(), u, rng)
-    return sysm, u, y
 
 
 def test_log_likelihood_matches_kalman_on_cuda(record):

@@ -17,6 +17,7 @@ import pytest
 import torch
 from conftest import (
     DTYPE,
+    N_STEPS,
     Paper41G,
     generator,
     make_linear_system,
@@ -36,9 +37,6 @@ from torch_nssm.model import SequenceBatch, StateSpaceModel
 from torch_nssm.noise import MaskedScale
 from torch_nssm.resampling import RESAMPLING_SCHEMES
 from torch_nssm.smoothing import _backward_kernels, ffbsi, ffbsm, smoothed_moments
-
-N_STEPS = 100
-
 
 # --------------------------------------------------------------------------- the reference itself
 
@@ -96,15 +94,6 @@ def test_reference_kalman_matches_batch_gaussian(missing):
 # --------------------------------------------------------------------------- linear-Gaussian system
 
 N_COPIES = 20  # independent particle runs of one record (the batch dimension)
-
-
-@pytest.fixture(scope="module")
-def record():
-    sysm = make_linear_system()
-    rng = np.random.default_rng(0)
-    u = rng.normal(size=(N_STEPS, 1))
-    _, y = simulate_linear(*sysm.matrices(), u, rng)
-    return sysm, u, y
 
 
 def _missing_record(record):
