@@ -12,7 +12,10 @@ weights are ``W^{ij} = K^{ij} W_{k+1|N}^j`` and everything the M-step needs is a
     W_{k|N}^i = sum_j K^{ij} W_{k+1|N}^j
     m_k^i     = sum_j K^{ij} W_{k+1|N}^j x_{k+1}^j
 
-The ``j`` dimension is processed in chunks, so memory is ``O(B * L * chunk)`` per step.
+The kernels depend on the filter alone: they are built for blocks of time steps (or chunks of rows
+of one step's) of at most :data:`KERNEL_BLOCK` entries, in single precision by default, and the
+backward recursion is one small product per step; memory is ``O(KERNEL_BLOCK)`` beyond the
+``(T, B, L)`` statistics.
 
 Backward simulation (FFBSi) draws ``M`` smoothed trajectories instead, in ``O(T (L + M))`` expected
 time: each backward index is proposed from the filter weights and accepted with probability
