@@ -268,3 +268,21 @@ def test_parameterless_observation_module():
     assert g.to(torch.float32) is g  # no state to convert
     x = torch.randn(2, 3, 4, dtype=DTYPE)
     torch.testing.assert_close(g(x, torch.zeros(2, 3, 1, dtype=DTYPE)), x[..., 2:])
+
+
+def test_frozen_evaluator_equals_forward_and_respects_overrides():
+    """``frozen()`` (the filter's per-pass evaluator) computes ``forward`` with the parameters as
+    they were when it was made; a subclass with its own ``forward`` or a hook gets the module."""
+    f = PaperTransition(0.9, 1.0)
+    x = torch.randn(3, 7, 1, dtype=torch.float64)
+    u = torch.randn(3, 7, 1, dtype=torch.float64)
+    torch.testing.assert_close(f.frozen()(x, u), f(x, u), rtol=0, atol=0)
+
+    class Scaled(PaperTransition):
+        def forward(self, x, u):
+            return 2.0 * super().forward(x, u)
+
+    scaled = Scaled(0.9, 1.0)
+    assert scaled.frozen() is scaled
+    f.register_forward_hook(lambda module, args, out: out + 1.0)
+    assert f.frozen() is f

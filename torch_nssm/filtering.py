@@ -16,7 +16,6 @@ from torch import Tensor, nn
 from ._ops import small_matmul, squared_norm
 from .model import SequenceBatch, StateSpaceModel
 from .noise import MaskedScale, masked_scale, student_t_log_prob
-from .parametric import LinearInParameters
 from .resampling import get_resampler, systematic, systematic_from_cumsum, systematic_grid
 
 __all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
@@ -95,23 +94,11 @@ def _process_noise(model: StateSpaceModel, L: int, generator, out: Tensor) -> No
         torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
 
 
-def _fixed_parameters(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
-    """``module`` as a function of ``(x, u)``, with a :class:`LinearInParameters` module's flat
-    ``theta`` gathered once instead of at every call (the parameters do not change during a
-    filter pass; :meth:`LinearInParameters.theta` concatenates them, ~4 us a call)."""
-    if (
-        isinstance(module, LinearInParameters)
-        and type(module).forward is LinearInParameters.forward
-        and not (module._forward_hooks or module._forward_pre_hooks)
-    ):
-        theta = module.theta()
-
-        def forward(x: Tensor, u: Tensor) -> Tensor:
-            Phi, offset = module.features(x, u)
-            return offset + Phi @ theta  # (..., d, P) @ (P,): LinearInParameters.forward
-
-        return forward
-    return module
+def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
+    """``module`` for one filter pass: its ``frozen()`` evaluator where it has one (e.g.
+    :meth:`LinearInParameters.frozen`, parameters gathered once), else the module."""
+    frozen = getattr(module, "frozen", None)
+    return frozen() if callable(frozen) else module
 
 
 def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tuple[Tensor, Tensor, Tensor]:
@@ -207,7 +194,7 @@ def particle_filter(
     D3 = delta2_all.unsqueeze(-1).unbind(0)
     M, S, NORM = m_all.unbind(0), s_all.unbind(0), norm_all.unbind(0)
     U = data.u.unsqueeze(-2).expand(T, B, L, data.u.shape[-1]).unbind(0)  # model.transition's expand
-    f, g = _fixed_parameters(model.f), _fixed_parameters(model.g)
+    f, g = _frozen(model.f), _frozen(model.g)
     if not gaussian:
         neg_coef = (-coef).unsqueeze(-1).unbind(0)
         inv_nu = (1.0 / nu).unsqueeze(-1).unbind(0)

@@ -8,6 +8,8 @@ solutions, which the EM engine uses instead of a gradient optimiser.
 
 from __future__ import annotations
 
+from typing import Callable
+
 import torch
 from torch import Tensor, nn
 
@@ -48,8 +50,24 @@ class LinearInParameters(nn.Module):
             start += p.numel()
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        return self._linear(x, u, self.theta())
+
+    def _linear(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
         Phi, offset = self.features(x, u)
-        return offset + (Phi @ self.theta().unsqueeze(-1)).squeeze(-1)
+        return offset + Phi @ theta  # (..., d, P) @ (P,)
+
+    def frozen(self) -> Callable[[Tensor, Tensor], Tensor]:
+        """This module's ``forward`` with ``theta`` gathered once, for a pass that does not change
+        the parameters (the particle filter calls ``f`` and ``g`` at every time step, where
+        concatenating the parameters and the module call cost as much as the arithmetic).
+
+        Returns the module itself when a subclass overrides ``forward`` or hooks are registered.
+        """
+        hooks = self._forward_hooks or self._forward_pre_hooks
+        if type(self).forward is not LinearInParameters.forward or hooks:
+            return self
+        theta = self.theta()
+        return lambda x, u: self._linear(x, u, theta)
 
     @torch.no_grad()
     def solve_weighted_least_squares(
