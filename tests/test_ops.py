@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
-from torch_nssm.smoothing import _GUIDE_MIN_DRAWS, _cdf, _draw_cdf, _independent_mh, _log_kernel, _proposals
+from torch_nssm.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf
+from torch_nssm.smoothing import _independent_mh, _log_kernel, _proposals
 
 
 @pytest.mark.parametrize(
@@ -91,9 +92,9 @@ def test_guide_table_draws_equal_the_binary_search(case):
     if case == "zeros":  # zero weights: flat stretches of the cdf
         log_w[:, ::3] = -math.inf
         log_w[:5, 2:] = -math.inf  # all the weight on particle 1
-    cdf = _cdf(log_w)
+    cdf = cumulative_weights(log_w)
     u = torch.rand(R, n, dtype=torch.float64, generator=g)
     u[:, :3] = torch.tensor([0.0, 0.5, 1.0 - 2.0**-53], dtype=torch.float64)
     ref = torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1)
     assert u.numel() >= _GUIDE_MIN_DRAWS  # the guide-table path
-    assert torch.equal(_draw_cdf(cdf, u), ref)
+    assert torch.equal(inverse_cdf(cdf, u), ref)

@@ -17,6 +17,8 @@ from torch import Tensor
 __all__ = [
     "RESAMPLING_SCHEMES",
     "effective_sample_size",
+    "cumulative_weights",
+    "inverse_cdf",
     "multinomial",
     "systematic",
     "systematic_from_cumsum",
@@ -32,12 +34,50 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     return torch.exp(-torch.logsumexp(2.0 * log_weights, dim=-1))
 
 
-def _inverse_cdf(log_weights: Tensor, positions: Tensor) -> Tensor:
-    """Indices ``i`` with ``cdf[i-1] <= positions < cdf[i]`` (positions sorted in ``[0, 1)``)."""
+def cumulative_weights(log_weights: Tensor) -> Tensor:
+    """Cumulative weights along the last dimension (any leading shape), ending at exactly 1."""
     cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
-    cdf = cdf / cdf[..., -1:]  # exact 1 at the end despite rounding
-    idx = torch.searchsorted(cdf, positions.contiguous(), right=True)
-    return idx.clamp_(max=log_weights.shape[-1] - 1)
+    return cdf / cdf[..., -1:]
+
+
+#: Below this many draws per call the guide table's dozen operations cost more than they save.
+_GUIDE_MIN_DRAWS = 4096
+
+
+def inverse_cdf(cdf: Tensor, u: Tensor) -> Tensor:
+    """Inverse-CDF indices ``#{i < L-1: cdf_i <= u}`` for uniforms ``u`` ``(R, n)`` and rows of a
+    cumulative-weight table ``cdf`` ``(R, L)`` (ending at 1): ``n`` i.i.d. draws per row.
+
+    Equal to ``searchsorted(cdf, u, right=True)`` and ~3x cheaper on a CPU (its binary search
+    costs 70-100 ns a draw at L = 1000-3000).  A guide table (Chen & Asau 1974) gives, for the
+    bucket ``floor(L u)`` of each uniform, the first index that can hold it and the bucket's end;
+    four vectorised steps forward finish almost every draw, and the few left (buckets crowded
+    with tiny weights) are finished by a binary search between those two bounds.  Calls with
+    fewer than :data:`_GUIDE_MIN_DRAWS` draws (a rejection sampler's tries, one resampling) use
+    ``searchsorted``.
+    """
+    R, L = cdf.shape
+    if u.numel() < _GUIDE_MIN_DRAWS:
+        return torch.searchsorted(cdf, u.contiguous(), right=True).clamp_(max=L - 1)
+    key = (cdf[:, :-1] * L).long().clamp_(max=L - 1)  # bucket of each boundary
+    lo = torch.zeros(R, L + 1, dtype=torch.long, device=cdf.device)
+    lo = lo.scatter_add_(1, key + 1, torch.ones_like(key)).cumsum_(1)  # boundaries before bucket b
+    bucket = (u * L).long().clamp_(max=L - 1)  # u * L rounds to L for u within 2^-53 of 1
+    idx = (lo.gather(1, bucket) - 1).clamp_(min=0)  # one back: robust to rounding
+    for _ in range(4):
+        idx += cdf.gather(1, idx) <= u
+    r, c = torch.nonzero(cdf.gather(1, idx) <= u, as_tuple=True)
+    if r.numel():  # binary search in [idx, end of the bucket]: cdf[first] <= u < cdf[last]
+        first = idx[r, c]
+        last = (lo[r, bucket[r, c] + 1] + 1).clamp_(max=L - 1)
+        flat, base, v = cdf.reshape(-1), r * L, u[r, c]
+        for _ in range(int(last.sub(first).max()).bit_length()):
+            mid = (first + last) // 2
+            below = flat[base + mid] <= v
+            first = torch.where(below, mid + 1, first)
+            last = torch.where(below, last, mid)
+        idx[r, c] = first
+    return idx
 
 
 def multinomial(
@@ -134,7 +174,7 @@ def stratified(log_weights: Tensor, n: int | None = None, generator: torch.Gener
     n = L if n is None else n
     u = torch.rand(B, n, dtype=log_weights.dtype, device=log_weights.device, generator=generator)
     j = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
-    return _inverse_cdf(log_weights, (j + u) / n)
+    return inverse_cdf(cumulative_weights(log_weights), (j + u) / n)
 
 
 def residual(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:

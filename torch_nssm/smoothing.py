@@ -37,6 +37,7 @@ from torch import Tensor
 from ._ops import small_matmul, squared_norm, time_blocks
 from .filtering import FilterOutput
 from .model import SequenceBatch, StateSpaceModel
+from .resampling import cumulative_weights, inverse_cdf
 
 __all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT", "SMOOTHERS"]
 
@@ -318,57 +319,12 @@ def _whitened(x: Tensor, Cinv_t: Tensor) -> Tensor:
     return small_matmul(x.unsqueeze(-2), Cinv_t.unsqueeze(-3)).squeeze(-2)
 
 
-def _cdf(log_weights: Tensor) -> Tensor:
-    """Cumulative weights along the last dimension (any leading shape), ending at exactly 1."""
-    cdf = torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1)
-    return cdf / cdf[..., -1:]
-
-
-#: Below this many draws per call the guide table's dozen operations cost more than they save.
-_GUIDE_MIN_DRAWS = 4096
-
-
-def _draw_cdf(cdf: Tensor, u: Tensor) -> Tensor:
-    """Inverse-CDF indices ``#{i < L-1: cdf_i <= u}`` for uniforms ``u`` ``(R, n)`` and rows of a
-    cumulative-weight table ``cdf`` ``(R, L)`` (ending at 1): ``n`` i.i.d. draws per row.
-
-    Equal to ``searchsorted(cdf, u, right=True)`` and ~3x cheaper on a CPU (its binary search
-    costs 70-100 ns a draw at L = 1000-3000).  A guide table (Chen & Asau 1974) gives, for the
-    bucket ``floor(L u)`` of each uniform, the first index that can hold it and the bucket's end;
-    four vectorised steps forward finish almost every draw, and the few left (buckets crowded
-    with tiny weights) are finished by a binary search between those two bounds.  Calls with
-    fewer than :data:`_GUIDE_MIN_DRAWS` draws (the rejection sampler's tries) use ``searchsorted``.
-    """
-    R, L = cdf.shape
-    if u.numel() < _GUIDE_MIN_DRAWS:
-        return torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1)
-    key = (cdf[:, :-1] * L).long().clamp_(max=L - 1)  # bucket of each boundary
-    lo = torch.zeros(R, L + 1, dtype=torch.long, device=cdf.device)
-    lo = lo.scatter_add_(1, key + 1, torch.ones_like(key)).cumsum_(1)  # boundaries before bucket b
-    bucket = (u * L).long().clamp_(max=L - 1)  # u * L rounds to L for u within 2^-53 of 1
-    idx = (lo.gather(1, bucket) - 1).clamp_(min=0)  # one back: robust to rounding
-    for _ in range(4):
-        idx += cdf.gather(1, idx) <= u
-    r, c = torch.nonzero(cdf.gather(1, idx) <= u, as_tuple=True)
-    if r.numel():  # binary search in [idx, end of the bucket]: cdf[first] <= u < cdf[last]
-        first = idx[r, c]
-        last = (lo[r, bucket[r, c] + 1] + 1).clamp_(max=L - 1)
-        flat, base, v = cdf.reshape(-1), r * L, u[r, c]
-        for _ in range(int(last.sub(first).max()).bit_length()):
-            mid = (first + last) // 2
-            below = flat[base + mid] <= v
-            first = torch.where(below, mid + 1, first)
-            last = torch.where(below, last, mid)
-        idx[r, c] = first
-    return idx
-
-
 def _draw(log_weights: Tensor, n: int, generator) -> Tensor:
     """``n`` i.i.d. indices per row of the log-weights ``(..., L)``: ``(..., n)``."""
     lead, L = log_weights.shape[:-1], log_weights.shape[-1]
-    cdf = _cdf(log_weights).reshape(-1, L)
+    cdf = cumulative_weights(log_weights).reshape(-1, L)
     u = torch.rand(cdf.shape[0], n, dtype=cdf.dtype, device=cdf.device, generator=generator)
-    return _draw_cdf(cdf, u).view(*lead, n)
+    return inverse_cdf(cdf, u).view(*lead, n)
 
 
 def _proposals(log_weights: Tensor, n: int, steps: int, generator) -> Tensor:
@@ -477,7 +433,7 @@ def ffbsi(
             u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
             log_us = torch.log(u)
         else:
-            cdfs = _cdf(logW[blk])  # (t, B, L)
+            cdfs = cumulative_weights(logW[blk])  # (t, B, L)
         for k in range(blk.stop - 1, blk.start - 1, -1):
             i = k - blk.start
             J_next = Js[k + 1]
@@ -496,7 +452,7 @@ def ffbsi(
                 # Rows past a sequence's end restart from the filter (their transitions are masked out).
                 if restart is None:
                     u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
-                    restart = _draw_cdf(cdfs[i], u)
+                    restart = inverse_cdf(cdfs[i], u)
                 J = torch.where(trans[k].unsqueeze(-1), J, restart)
             Js[k] = J
     return _trajectory_statistics(X, logW, Js, trans)
@@ -511,7 +467,7 @@ def _reject(zf: Tensor, zx: Tensor, logW: Tensor, cdf: Tensor, max_tries: int, g
     pending = torch.ones(B, M, dtype=torch.bool, device=zx.device)
     for _ in range(max_tries):
         u = torch.rand(2, B, M, dtype=zx.dtype, device=zx.device, generator=generator)
-        prop = _draw_cdf(cdf, u[0])
+        prop = inverse_cdf(cdf, u[0])
         accept = pending & (torch.log(u[1]) < _log_kernel(zf, prop, zx))
         J = torch.where(accept, prop, J)
         pending = pending & ~accept
