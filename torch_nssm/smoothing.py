@@ -150,7 +150,7 @@ def ffbsm(
     entries = B * L * (L * min(T - 1, max(1, KERNEL_BLOCK // (B * L * L))) if whole else rows)
     workspace = torch.empty(entries, dtype=kdtype, device=device)  # every block's E, reused
     for blk in reversed(list(time_blocks(T - 1, B * L * L if whole else KERNEL_BLOCK, KERNEL_BLOCK))):
-        zf, zx, centre = _centred_whitened(model, data, X, logW, Cinv_t, blk)
+        zf, zx, centre = _whitened_steps(model, data, X, logW, Cinv_t, blk)
         centres[blk] = centre
         a = logW[blk] - 0.5 * squared_norm(zf)  # (t, B, L)
         # rows [w_j, w_j (x_j - c)^T]: one product with the kernel gives s and m together, and
@@ -239,19 +239,29 @@ def _backward_kernels(
     return E, 1.0 / d
 
 
-def _centred_whitened(
-    model: StateSpaceModel, data: SequenceBatch, X: Tensor, logW: Tensor, Cinv_t: Tensor, blk: slice
-) -> tuple[Tensor, Tensor, Tensor]:
+def _whitened_steps(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    X: Tensor,
+    logW: Tensor,
+    Cinv_t: Tensor,
+    blk: slice,
+    centred: bool = True,
+) -> tuple[Tensor, Tensor, Tensor | None]:
     """Whitened predictions ``z_f = C^-1 (f(x_k^i) - c)`` and next states ``z_x = C^-1 (x_{k+1}^j -
-    c)`` of the steps ``blk``, centred on ``c_k`` = the filter mean of ``x_{k+1}`` (t, B, 1, nx).
+    c)`` of the steps ``blk`` (t, B, L, nx each), and ``c`` (t, B, 1, nx).
 
-    Differences ``z_x - z_f`` are unchanged by the common shift; the centring keeps the expanded
-    exponent ``z_x . z_f - |z_f|^2 / 2`` free of cancellation when states are far from 0.
+    With ``centred``, ``c_k`` is the filter mean of ``x_{k+1}``: differences ``z_x - z_f`` are
+    unchanged by the common shift, and the centring keeps FFBSm's expanded exponent
+    ``z_x . z_f - |z_f|^2 / 2`` free of cancellation when states are far from 0.  The trajectory
+    smoothers use only the differences and skip it (``c = None``).
     """
     X_next = X[blk.start + 1 : blk.stop + 1]
-    w = torch.softmax(logW[blk.start + 1 : blk.stop + 1], dim=-1).unsqueeze(-1)
-    c = (w * X_next).sum(-2, keepdim=True)  # (t, B, 1, nx)
     fx = model.transition_steps(X[blk], data.u[blk])
+    if not centred:
+        return _whitened(fx, Cinv_t), _whitened(X_next, Cinv_t), None
+    w = torch.softmax(logW[blk.start + 1 : blk.stop + 1], dim=-1).unsqueeze(-1)
+    c = (w * X_next).sum(-2, keepdim=True)
     return _whitened(fx - c, Cinv_t), _whitened(X_next - c, Cinv_t), c
 
 
@@ -260,7 +270,7 @@ def _pairwise_statistics(
 ) -> SmootherOutput:
     """``xbar``, the transition weights and the process scatter from FFBSm's ``s`` and ``m``.
 
-    ``m`` is about the centre ``c_k`` of each step (:func:`_centred_whitened`); the scatter is
+    ``m`` is about the centre ``c_k`` of each step (:func:`_whitened_steps`); the scatter is
     computed in centred form, ``sum_j w_j d_j d_j^T - sum_i s_i e_i e_i^T`` with ``d = x - c``,
     ``e = xbar - c`` (the same quantity: ``sum_i K^{ij} = 1``), so nothing of size ``|c|^2``
     cancels.  Done for blocks of steps after the backward pass.
@@ -427,7 +437,7 @@ def ffbsi(
     Js[T - 1] = _draw(logW[T - 1], M, generator)
     for blk in reversed(list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))):
         t = blk.stop - blk.start
-        zf, zx, _ = _centred_whitened(model, data, X, logW, Cinv_t, blk)  # (t, B, L, nx) each
+        zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
         if method == "mcmc":
             props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
             u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
