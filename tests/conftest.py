@@ -11,7 +11,8 @@ import torch
 from reference import simulate_linear
 from torch import nn
 
-from torch_nssm.model import SequenceBatch, StateSpaceModel
+from torch_nssm.core.model import SequenceBatch, StateSpaceModel
+from torch_nssm.core.noise import GaussianNoise, StudentTNoise
 
 DTYPE = torch.float64
 
@@ -110,14 +111,26 @@ def _t(a) -> torch.Tensor:
     return torch.as_tensor(a, dtype=DTYPE)
 
 
+def noise_model(Rv, dof=math.inf):
+    """Student-t noise of scale ``Rv`` and ``dof`` degrees of freedom (Gaussian for ``inf``)."""
+    Rv = torch.as_tensor(Rv, dtype=DTYPE)
+    if math.isinf(float(dof)):
+        return GaussianNoise(Rv)
+    return StudentTNoise(Rv, torch.as_tensor(float(dof), dtype=DTYPE))
+
+
+def make_model(f, g, Rw, Rv, dof, x0_mean, x0_cov) -> StateSpaceModel:
+    """A :class:`StateSpaceModel` from tensors or arrays (Gaussian noise for infinite ``dof``)."""
+    return StateSpaceModel(f, g, _t(Rw), noise_model(Rv, dof), _t(x0_mean), _t(x0_cov))
+
+
 def nonlinear_model(dof: float = 3.0) -> StateSpaceModel:
     """2 states, 2 outputs, 1 input; full ``Rw`` and ``Rv``."""
     return StateSpaceModel(
         f=NonlinearF(),
         g=CosineG(),
         Rw=_t([[0.1, 0.04], [0.04, 0.2]]),
-        Rv=_t([[0.1, 0.03], [0.03, 0.2]]),
-        dof=_t(dof),
+        noise=noise_model([[0.1, 0.03], [0.03, 0.2]], dof),
         x0_mean=_t([0.0, 0.5]),
         x0_cov=_t([[1.0, 0.2], [0.2, 0.5]]),
     )
@@ -125,9 +138,7 @@ def nonlinear_model(dof: float = 3.0) -> StateSpaceModel:
 
 def paper_model(dof: float = 3.0) -> StateSpaceModel:
     """The paper's §4.1 system: ``x+ = 0.9 x + u + w``, ``y = cos x + v``, variances 0.1."""
-    return StateSpaceModel(
-        Paper41F(), Paper41G(), _t([[0.1]]), _t([[0.1]]), _t(dof), _t([0.0]), _t([[1.0]])
-    )
+    return make_model(Paper41F(), Paper41G(), [[0.1]], [[0.1]], dof, [0.0], [[1.0]])
 
 
 def simulate(model: StateSpaceModel, lengths, rng: np.random.Generator, outlier_rate: float = 0.0):
@@ -183,8 +194,7 @@ class LinearSystem:
             f=LinearF(self.A, self.B),
             g=LinearG(self.C, self.D),
             Rw=t(self.Q),
-            Rv=t(self.R),
-            dof=torch.tensor(dof, dtype=DTYPE),
+            noise=noise_model(self.R, dof),
             x0_mean=t(self.m0),
             x0_cov=t(self.P0),
         )

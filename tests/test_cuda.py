@@ -16,17 +16,18 @@ from dataclasses import fields, replace
 import numpy as np
 import pytest
 import torch
-from conftest import generator, replicate
+from conftest import generator, make_model, replicate
 from reference import kalman_filter, rts_smoother
 from test_filter_smoother import _check_log_likelihood, _check_moments
 
 from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm.core.model import SequenceBatch, StateSpaceModel
+from torch_nssm.core.noise import MeasurementNoise
 from torch_nssm.datasets import make_paper_example
-from torch_nssm.em import e_step
-from torch_nssm.filtering import particle_filter
-from torch_nssm.model import SequenceBatch, StateSpaceModel
+from torch_nssm.estimation.estep import EStepOptions, e_step
+from torch_nssm.inference.filtering import particle_filter
+from torch_nssm.inference.smoothing import ffbsi, ffbsm, smoothed_moments
 from torch_nssm.models import PaperObservation, PaperTransition
-from torch_nssm.smoothing import ffbsi, ffbsm, smoothed_moments
 
 #: The device under test; ``TORCH_NSSM_TEST_DEVICE=cpu`` runs these tests on the CPU (a check of the
 #: tests themselves on a machine without a GPU; the synchronisation test needs CUDA).
@@ -42,7 +43,8 @@ def _to(obj, device):
         kw = {}
         for fl in fields(obj):
             v = getattr(obj, fl.name)
-            kw[fl.name] = v.to(device) if isinstance(v, (torch.Tensor, torch.nn.Module)) else v
+            movable = (torch.Tensor, torch.nn.Module, MeasurementNoise)
+            kw[fl.name] = v.to(device=device) if isinstance(v, movable) else v
         return replace(obj, **kw)
     return SequenceBatch(obj.u.to(device), obj.y.to(device), obj.lengths.to(device))
 
@@ -100,11 +102,8 @@ def test_host_synchronisations_do_not_grow_with_length(smoother):
     """An E-step synchronises with the host a fixed number of times, not once per time step
     (``ffbsi``'s rejection sampler is the documented exception: its number of tries is data)."""
     data_all = make_paper_example(n_samples=120, outlier_fraction=0.1, random_state=0)
-    model = StateSpaceModel(
-        PaperTransition(0.9, 1.0),
-        PaperObservation(1.0),
-        *(torch.tensor(v, dtype=torch.float64) for v in ([[0.1]], [[0.1]], 3.0, [0.0], [[1.0]])),
-    )
+    f, g = PaperTransition(0.9, 1.0), PaperObservation(1.0)
+    model = make_model(f, g, [[0.1]], [[0.1]], 3.0, [0.0], [[1.0]])
     model = _to(model, CUDA)
 
     def n_syncs(n: int) -> int:
@@ -115,7 +114,7 @@ def test_host_synchronisations_do_not_grow_with_length(smoother):
             warnings.simplefilter("always")
             torch.cuda.set_sync_debug_mode("warn")
             try:
-                e_step(model, data, 64, smoother=smoother, generator=_gen(0))
+                e_step(model, data, EStepOptions(64, smoother), _gen(0))
             finally:
                 torch.cuda.set_sync_debug_mode("default")
         return sum("synchroniz" in str(w.message) for w in caught)

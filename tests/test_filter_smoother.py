@@ -21,6 +21,7 @@ from conftest import (
     Paper41G,
     generator,
     make_linear_system,
+    make_model,
     nonlinear_model,
     paper_model,
     replicate,
@@ -32,11 +33,11 @@ from scipy.special import logsumexp
 from torch import nn
 
 from torch_nssm._ops import squared_norm
-from torch_nssm.filtering import FilterOutput, NumericalError, particle_filter
-from torch_nssm.model import SequenceBatch, StateSpaceModel
-from torch_nssm.noise import MaskedScale
-from torch_nssm.resampling import RESAMPLING_SCHEMES
-from torch_nssm.smoothing import _backward_kernels, ffbsi, ffbsm, smoothed_moments
+from torch_nssm.core.model import SequenceBatch
+from torch_nssm.core.noise import MaskedScale
+from torch_nssm.inference.filtering import FilterOutput, NumericalError, particle_filter
+from torch_nssm.inference.resampling import RESAMPLING_SCHEMES
+from torch_nssm.inference.smoothing import _backward_kernels, ffbsi, ffbsm, smoothed_moments
 
 # --------------------------------------------------------------------------- the reference itself
 
@@ -311,9 +312,7 @@ class NaNAfter(nn.Module):
 
 def test_filter_raises_on_non_finite_model():
     t = lambda a: torch.as_tensor(a, dtype=DTYPE)  # noqa: E731
-    model = StateSpaceModel(
-        NaNAfter(), Paper41G(), t([[0.01]]), t([[0.1]]), t(4.0), t([1.0]), t([[0.01]])
-    )
+    model = make_model(NaNAfter(), Paper41G(), t([[0.01]]), t([[0.1]]), 4.0, t([1.0]), t([[0.01]]))
     data = SequenceBatch(
         u=torch.zeros(10, 1, 1, dtype=DTYPE),
         y=torch.zeros(10, 1, 1, dtype=DTYPE),

@@ -9,6 +9,7 @@ import pytest
 import torch
 from torch import nn
 
+from torch_nssm.core.parametric import LinearInParameters
 from torch_nssm.datasets import (
     ManipulatorConstants,
     make_gopaluni_example,
@@ -24,7 +25,6 @@ from torch_nssm.models import (
     PaperTransition,
     true_model,
 )
-from torch_nssm.parametric import LinearInParameters
 
 DTYPE = torch.float64
 

@@ -15,6 +15,7 @@ from conftest import (
     NonlinearF,
     generator,
     make_linear_system,
+    make_model,
     nonlinear_model,
     simulate,
     simulate_t_outputs,
@@ -23,23 +24,25 @@ from reference import pairwise_smoother, simulate_linear
 from scipy import optimize, special, stats
 from torch import nn
 
-from torch_nssm.em import e_step, latent_scales
-from torch_nssm.filtering import FilterOutput
-from torch_nssm.model import SequenceBatch, StateSpaceModel
-from torch_nssm.mstep import (
-    RegressionRows,
-    dof_update,
-    fit_weighted_regression,
+from torch_nssm.core.model import SequenceBatch, StateSpaceModel
+from torch_nssm.core.noise import GaussianNoise, masked_scale, solve_dof
+from torch_nssm.core.parametric import LinearInParameters
+from torch_nssm.estimation.estep import EStepOptions, EStepOutput, e_step, latent_scales
+from torch_nssm.estimation.mstep import (
     initial_state_update,
-    measurement_noise_update,
-    observation_rows,
+    noise_statistics,
+    observation_regression,
     process_noise_update,
-    transition_rows,
+    transition_regression,
+)
+from torch_nssm.estimation.solvers import (
+    RegressionRows,
+    SolverSettings,
+    fit_weighted_regression,
     weighted_loss,
 )
-from torch_nssm.noise import masked_scale
-from torch_nssm.parametric import LinearInParameters
-from torch_nssm.smoothing import ffbsm
+from torch_nssm.inference.filtering import FilterOutput
+from torch_nssm.inference.smoothing import ffbsm
 
 
 class LinearFLip(LinearInParameters):
@@ -75,7 +78,7 @@ def nonlinear_estep():
     ys[1][[3, 7]] = math.nan
     ys[0][5, 1] = math.nan
     data = SequenceBatch.from_sequences(us, ys)
-    est = e_step(model, data, 40, generator=generator(4))
+    est = e_step(model, data, EStepOptions(40), generator(4))
     return model, data, est
 
 
@@ -94,7 +97,7 @@ def linear_estep():
         ys.append(torch.as_tensor(y))
     data = SequenceBatch.from_sequences(us, ys)
     model = sysm.model(5.0)
-    est = e_step(model, data, 60, generator=generator(6))
+    est = e_step(model, data, EStepOptions(60), generator(6))
     return sysm, model, data, est
 
 
@@ -119,8 +122,7 @@ def test_process_noise_update_equals_pairwise_formula(nonlinear_estep, theta):
             d = filt.particles[k + 1, b].numpy()[None] - fx[:, None]
             direct += np.einsum("ij,ijp,ijq->pq", P, d, d)
     direct /= sum(n - 1 for n in data.lengths.tolist())
-    rows = transition_rows(model, data, filt, est.smoother)
-    Rw = process_noise_update(f, rows, est.smoother, data)
+    Rw = process_noise_update([f], transition_regression(model.Rw, data, est), est, data)
     np.testing.assert_allclose(Rw.numpy(), direct, rtol=1e-7)
     # dropping the theta-free bracket would underestimate Rw (the bug NOTES §7 warns about)
     assert np.all(
@@ -137,7 +139,7 @@ def test_process_noise_update_equals_pairwise_formula(nonlinear_estep, theta):
 
 def test_transition_rows(nonlinear_estep):
     model, data, est = nonlinear_estep
-    rows = transition_rows(model, data, est.filter, est.smoother)
+    rows = transition_regression(model.Rw, data, est).rows(slice(None))
     np.testing.assert_allclose(rows.precision.numpy(), np.linalg.inv(model.Rw.numpy()), rtol=1e-12)
     # total weight: one per transition inside the sequences
     assert rows.weight.sum().item() == pytest.approx(sum(n - 1 for n in data.lengths.tolist()), rel=1e-9)
@@ -176,16 +178,17 @@ def _normal_equations(rows: RegressionRows, nx: int, nu: int, d: int) -> np.ndar
 def test_closed_form_and_lbfgs_reach_the_same_minimiser(linear_estep, which):
     sysm, model, data, est = linear_estep
     if which == "f":
-        rows = transition_rows(model, data, est.filter, est.smoother)
+        rows = transition_regression(model.Rw, data, est).rows(slice(None))
         start = (sysm.A + 0.3, sysm.B - 0.5)
     else:
-        rows = observation_rows(model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam)[0]
-        assert rows.precision.dim() == 3 and torch.isnan(rows.target).any()  # per-row metrics
+        rows = observation_regression(data, est).rows(slice(None))
+        missing = torch.diagonal(rows.precision, dim1=-2, dim2=-1) == 0
+        assert rows.precision.dim() == 3 and missing.any()  # per-row metrics
         start = (sysm.C - 0.4, sysm.D + 0.5)
     closed = LinearFLip(*start)
     plain = LinearF(*start) if which == "f" else LinearG(*start)
-    loss_closed = fit_weighted_regression(closed, rows)
-    loss_lbfgs = fit_weighted_regression(plain, rows, optimizer="lbfgs", max_iter=200)
+    loss_closed = fit_weighted_regression(closed, rows).after
+    loss_lbfgs = fit_weighted_regression(plain, rows, "lbfgs", SolverSettings(max_iter=200)).after
     want = _normal_equations(rows, 2, 1, 2)
     np.testing.assert_allclose(_params(closed), want, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(_params(plain), want, rtol=1e-5, atol=1e-6)
@@ -221,11 +224,11 @@ def test_weighted_loss_formula():
 
 def test_adam_decreases_the_loss(linear_estep):
     sysm, model, data, est = linear_estep
-    rows = transition_rows(model, data, est.filter, est.smoother)
+    rows = transition_regression(model.Rw, data, est).rows(slice(None))
     f = LinearF(sysm.A + 0.3, sysm.B - 0.5)
     with torch.no_grad():
         before = float(weighted_loss(f, rows))
-    after = fit_weighted_regression(f, rows, optimizer="adam", max_iter=30, learning_rate=0.02)
+    after = fit_weighted_regression(f, rows, "adam", SolverSettings(max_iter=30, learning_rate=0.02)).after
     assert after < 0.8 * before
     with torch.no_grad():
         assert float(weighted_loss(f, rows)) == pytest.approx(after, rel=1e-12)
@@ -263,9 +266,9 @@ def test_nan_step_is_rolled_back_adam():
     m = Fragile(0.4)
     with torch.no_grad():
         before = float(weighted_loss(m, rows))
-    out = fit_weighted_regression(m, rows, optimizer="adam", max_iter=5, learning_rate=0.3)
+    report = fit_weighted_regression(m, rows, "adam", SolverSettings(max_iter=5, learning_rate=0.3))
     assert m.a.item() == 0.4
-    assert out == before
+    assert report.after == before and report.rejected
 
 
 def test_nan_step_is_rolled_back_lbfgs():
@@ -273,7 +276,7 @@ def test_nan_step_is_rolled_back_lbfgs():
     m = Fragile(0.4)
     with torch.no_grad():
         before = float(weighted_loss(m, rows))
-    out = fit_weighted_regression(m, rows, optimizer="lbfgs", max_iter=20)
+    out = fit_weighted_regression(m, rows, "lbfgs", SolverSettings(max_iter=20)).after
     # LBFGS may improve inside a <= 0.5 but must never leave a NaN model behind
     assert math.isfinite(out) and out <= before
     assert m.a.item() <= 0.5
@@ -287,8 +290,8 @@ def test_worse_step_is_rolled_back():
     with torch.no_grad():
         before = float(weighted_loss(m, rows))
     state = {k: v.clone() for k, v in m.state_dict().items()}
-    out = fit_weighted_regression(m, rows, optimizer="adam", max_iter=1, learning_rate=10.0)
-    assert out == before
+    report = fit_weighted_regression(m, rows, "adam", SolverSettings(max_iter=1, learning_rate=10.0))
+    assert report.after == before and report.rejected
     for k, v in m.state_dict().items():
         assert torch.equal(v, state[k])
 
@@ -300,11 +303,11 @@ def test_no_free_parameters_or_rows():
         p.requires_grad_(False)
     with torch.no_grad():
         before = float(weighted_loss(m, rows))
-    assert fit_weighted_regression(m, rows) == pytest.approx(before)
+    assert fit_weighted_regression(m, rows).after == pytest.approx(before)
     assert m.A.item() == 0.5
     empty = RegressionRows(rows.x[:0], rows.u[:0], rows.target[:0], rows.weight[:0], rows.precision)
     m.A.requires_grad_(True)
-    assert fit_weighted_regression(m, empty) == 0.0
+    assert fit_weighted_regression(m, empty).after == 0.0
 
 
 # --------------------------------------------------------------------------- known-state E-steps
@@ -315,7 +318,7 @@ def _known_states(model: StateSpaceModel, data: SequenceBatch, x: torch.Tensor):
     T, B, nx = x.shape
     particles = x.unsqueeze(2)  # (T, B, 1, nx)
     zeros = torch.zeros(T, B, 1, dtype=DTYPE)
-    scale = masked_scale(model.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
+    scale = masked_scale(model.noise.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
     filt = FilterOutput(
         particles=particles,
         log_weights=zeros,
@@ -339,22 +342,18 @@ def test_dof_update_recovers_known_dof():
     data = SequenceBatch(
         u=torch.zeros(T, B, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.full((B,), T)
     )
-    model = StateSpaceModel(
-        f=LinearF(np.eye(2), np.zeros((2, 1))),
-        g=LinearG(np.eye(2), np.zeros((2, 1))),
-        Rw=torch.eye(2, dtype=DTYPE),
-        Rv=torch.as_tensor(R),
-        dof=torch.tensor(20.0, dtype=DTYPE),
-        x0_mean=torch.zeros(2, dtype=DTYPE),
-        x0_cov=torch.eye(2, dtype=DTYPE),
+    model = make_model(
+        LinearF(np.eye(2), np.zeros((2, 1))), LinearG(np.eye(2), np.zeros((2, 1))), np.eye(2), R, 20.0,
+        np.zeros(2), np.eye(2),
     )
     filt, smooth = _known_states(model, data, torch.as_tensor(x))
-    n_samples = data.obs_mask.any(-1).sum().to(DTYPE)
-    dof = model.dof
+    noise = model.noise
+    dof = noise.dof
     for _ in range(300):
-        e_lam, e_log = latent_scales(replace(model, dof=dof), data, filt)
-        _, sw, lam, log_lam = observation_rows(model, data, filt, smooth, e_lam, e_log)
-        new = dof_update(sw, lam, log_lam, n_samples, (0.1, 1000.0))
+        noise = noise.replace(dof=dof)
+        e_lam, e_log = latent_scales(replace(model, noise=noise), data, filt)
+        suff = noise_statistics(noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
+        new = noise.updated(suff, fit_Rv=False, fit_dof=True, dof_bounds=(0.1, 1000.0)).dof
         if abs(float(new - dof)) < 1e-10:
             break
         dof = new
@@ -384,11 +383,11 @@ def test_dof_update_gaussian_data_hits_upper_bound():
     T = 2000
     d2 = torch.as_tensor(rng.chisquare(1, size=T))  # Gaussian residuals, p = 1
     dof = torch.tensor(10.0, dtype=DTYPE)
-    from torch_nssm.noise import latent_scale_expectations
+    from torch_nssm.core.noise import latent_scale_expectations
 
     for _ in range(200):
         lam, log_lam = latent_scale_expectations(d2, torch.tensor(1.0, dtype=DTYPE), dof)
-        dof = dof_update(torch.ones(T, dtype=DTYPE), lam, log_lam, torch.tensor(float(T)), (0.1, 200.0))
+        dof = solve_dof((log_lam - lam).sum() / T, 0.1, 200.0)
     assert float(dof) > 30.0
 
 
@@ -396,7 +395,7 @@ def test_latent_scales_with_missing_components(linear_estep):
     """<lam> and <log lam> of every particle use the observed components only (NOTES §1)."""
     sysm, model, data, est = linear_estep
     T, B, L, _ = est.filter.particles.shape
-    nu = float(model.dof)
+    nu = float(model.noise.dof)
     with torch.no_grad():
         g = model.g(est.filter.particles, data.u.unsqueeze(2).expand(T, B, L, 1)).numpy()
     r = data.y.numpy()[:, :, None, :] - g  # (T, B, L, p)
@@ -426,8 +425,8 @@ def test_measurement_noise_update_with_missing_components(linear_estep):
     """Rv = 1/N_obs sum_k sum_l [W <lam> rhat rhat^T + W (R_mm - R_mo R_oo^-1 R_om)], with the
     missing part of each residual completed by its conditional mean under the old R."""
     sysm, model, data, est = linear_estep
-    rows, sw, *_ = observation_rows(model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam)
-    Rv = measurement_noise_update(model.g, rows, data, model.Rv, sw).numpy()
+    stats = noise_statistics(model.noise, [model.g], data, est)
+    Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv.numpy()
     T, B, L, _ = est.filter.particles.shape
     with torch.no_grad():
         g = model.g(est.filter.particles, data.u.unsqueeze(2).expand(T, B, L, 1)).numpy()
@@ -466,23 +465,17 @@ def test_measurement_noise_update_recovers_R_with_known_states():
     x, y = simulate_t_outputs(R, math.inf, T, B, rng)
     y.reshape(-1)[rng.choice(y.size, size=y.size // 4, replace=False)] = np.nan
     data = SequenceBatch(u=torch.zeros(T, B, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T]))
-    model = StateSpaceModel(
-        f=LinearF(np.eye(2), np.zeros((2, 1))),
-        g=LinearG(np.eye(2), np.zeros((2, 1))),
-        Rw=torch.eye(2, dtype=DTYPE),
-        Rv=torch.eye(2, dtype=DTYPE),
-        dof=torch.tensor(math.inf, dtype=DTYPE),
-        x0_mean=torch.zeros(2, dtype=DTYPE),
-        x0_cov=torch.eye(2, dtype=DTYPE),
+    model = make_model(
+        LinearF(np.eye(2), np.zeros((2, 1))), LinearG(np.eye(2), np.zeros((2, 1))), np.eye(2), np.eye(2),
+        math.inf, np.zeros(2), np.eye(2),
     )
-    filt, smooth = _known_states(model, data, torch.as_tensor(x))
-    e_lam, e_log = latent_scales(model, data, filt)
-    assert torch.all(e_lam == 1.0)
-    rows, sw, *_ = observation_rows(model, data, filt, smooth, e_lam, e_log)
-    Rv = model.Rv
     for _ in range(50):  # EM for incomplete data: iterate the update to its fixed point
-        Rv = measurement_noise_update(model.g, rows, data, Rv, sw)
-        rows.precision = _observed_precision(Rv, rows.target)
+        filt, smooth = _known_states(model, data, torch.as_tensor(x))
+        e_lam, e_log = latent_scales(model, data, filt)
+        assert torch.all(e_lam == 1.0)
+        stats = noise_statistics(model.noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
+        Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv
+        model = replace(model, noise=GaussianNoise(Rv))
     np.testing.assert_allclose(Rv.numpy(), R, atol=0.04)
 
 
@@ -494,22 +487,14 @@ def test_measurement_noise_update_is_positive_definite():
     y[100:200, 0, 1] = np.where(np.arange(100) % 2, 1.0, -1.0)
     y[200:, 0, :] = 3.0
     data = SequenceBatch(u=torch.zeros(T, 1, 1, dtype=DTYPE), y=torch.as_tensor(y), lengths=torch.tensor([T]))
-    target = torch.as_tensor(y[:, 0])
-    obs = ~torch.isnan(target)
-    rows = RegressionRows(
-        x=torch.zeros(T, 2, dtype=DTYPE),
-        u=torch.zeros(T, 1, dtype=DTYPE),
-        target=target,
-        weight=torch.ones(T, dtype=DTYPE),
-        precision=(obs[:, :, None] & obs[:, None, :]).to(DTYPE),
+    model = make_model(
+        LinearF(np.eye(2), np.zeros((2, 1))), LinearG(np.eye(2), np.zeros((2, 1))), np.eye(2), np.eye(2),
+        math.inf, np.zeros(2), np.eye(2),
     )
-    Rv = measurement_noise_update(
-        LinearG(np.eye(2), np.zeros((2, 1))),
-        rows,
-        data,
-        torch.eye(2, dtype=DTYPE),
-        torch.ones(T, dtype=DTYPE),
-    )
+    filt, smooth = _known_states(model, data, torch.zeros(T, 1, 2, dtype=DTYPE))  # residuals = y
+    e_lam, e_log = latent_scales(model, data, filt)
+    stats = noise_statistics(model.noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
+    Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv
     assert torch.linalg.eigvalsh(Rv).min() > 0  # pairwise deletion gave eigenvalues (-7.7, 10.3)
 
 
@@ -520,16 +505,17 @@ def test_observation_rows_when_particles_equal_outputs():
     _, y = simulate_linear(*sysm.matrices(), u, rng)
     data = SequenceBatch.from_sequences([torch.as_tensor(u)], [torch.as_tensor(y)])
     model = sysm.model(5.0)
-    est = e_step(model, data, 2, generator=generator(0))  # L = 2 = p
-    rows, sw, lam, _ = observation_rows(model, data, est.filter, est.smoother, est.e_lam, est.e_log_lam)
+    est = e_step(model, data, EStepOptions(2), generator(0))  # L = 2 = p
+    rows = observation_regression(data, est).rows(slice(None))
     assert rows.target.shape == (rows.x.shape[0], 2)
-    assert rows.precision.shape == (rows.x.shape[0], 2, 2)
+    assert rows.weight.shape == (rows.x.shape[0],)
+    assert rows.precision.shape in ((2, 2), (rows.x.shape[0], 2, 2))
 
 
 def test_initial_state_update(nonlinear_estep):
     model, data, est = nonlinear_estep
     floor = 0.01 * torch.eye(2, dtype=DTYPE)
-    mean, cov = initial_state_update(est.filter, est.smoother, floor)
+    mean, cov = initial_state_update(est, floor)
     w = np.exp(est.smoother.log_weights[0].numpy())  # (B, L)
     x = est.filter.particles[0].numpy()  # (B, L, nx)
     means = np.einsum("bl,blp->bp", w, x)
@@ -571,15 +557,10 @@ def test_minibatch_adam_early_stopping_reaches_the_minimiser():
     results = []
     for _ in range(2):
         module = _Affine()
-        loss = fit_weighted_regression(
-            module,
-            rows,
-            optimizer="adam",
-            max_iter=60,
-            learning_rate=0.05,
-            batch_size=256,
-            generator=torch.Generator().manual_seed(0),
+        settings = SolverSettings(
+            max_iter=60, learning_rate=0.05, batch_size=256, generator=torch.Generator().manual_seed(0)
         )
+        loss = fit_weighted_regression(module, rows, "adam", settings).after
         results.append((module.w.item(), module.v.item(), loss))
     assert results[0] == results[1]  # reproducible with a seeded generator
     w, v, loss = results[0]

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
-from torch_nssm.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf
-from torch_nssm.smoothing import _independent_mh, _log_kernel, _proposals
+from torch_nssm.inference.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf
+from torch_nssm.inference.smoothing import _independent_mh, _log_kernel, _proposals
 
 
 @pytest.mark.parametrize(

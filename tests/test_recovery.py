@@ -12,8 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_nssm import LinearInParameters, RobustNSSMEstimator
-from torch_nssm.batch import fit_independent
+from torch_nssm import RobustNSSMEstimator, fit_independent
 from torch_nssm.datasets import make_manipulator, make_paper_example
 from torch_nssm.models import (
     ManipulatorObservation,
@@ -189,7 +188,7 @@ def test_particle_schedule_and_iterate_averaging(paper_data):
         tol=0,
         random_state=0,
     ).fit(paper_data.u, paper_data.y)
-    assert [est._particles(i) for i in (0, 15, 30)] == [40, 80, 160]
+    assert [est._em_options().n_particles(i) for i in (0, 15, 30)] == [40, 80, 160]
     for key, value in (("f.a", est.f_.a), ("f.b", est.f_.b), ("g.c", est.g_.c)):
         np.testing.assert_allclose(value.item(), est.history_[key][-10:].mean(), rtol=1e-12)
     np.testing.assert_allclose(est.Rv_, est.history_["Rv"][-10:].mean(0), rtol=1e-12)
@@ -197,31 +196,6 @@ def test_particle_schedule_and_iterate_averaging(paper_data):
     assert _errors(est)[[0, 2]].max() < 0.03 and _errors(est)[1] < 0.07
     # the averaged iterate varies less than single iterates do
     assert np.std(est.history_["f.b"][-10:]) > 0
-
-
-def test_batched_m_step_equals_per_data_set_m_step(monkeypatch):
-    """fit_independent's batched closed-form M-step gives the per-data-set m_step's estimates."""
-    import torch_nssm.batch as batch
-
-    sets = [make_paper_example(n_samples=200, random_state=s) for s in (3, 4)]
-    proto = RobustNSSMEstimator(
-        PaperTransition(0.5, 0.5),
-        PaperObservation(0.5),
-        x0_mean=[0.0],
-        n_particles=50,
-        n_iter=5,
-        tol=0,
-        random_state=0,
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fast = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
-        monkeypatch.setattr(batch, "_batchable", lambda module: False)
-        slow = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
-    for a, b in zip(fast, slow):
-        np.testing.assert_allclose(_theta(a), _theta(b), rtol=1e-6)
-        for attr in ("Rw_", "Rv_", "dof_", "x0_mean_", "x0_cov_"):
-            np.testing.assert_allclose(getattr(a, attr), getattr(b, attr), rtol=1e-6)
 
 
 def test_fit_independent_averages_iterates_and_grows_particles():
@@ -244,112 +218,6 @@ def test_fit_independent_averages_iterates_and_grows_particles():
             np.testing.assert_allclose(value.item(), f.history_[key][-4:].mean(), rtol=1e-12)
         np.testing.assert_allclose(f.Rw_, f.history_["Rw"][-4:].mean(0), rtol=1e-12)
         assert np.isfinite(f.log_likelihood_) and f.outlier_weights_.shape == (150,)
-
-
-class _TwoStateF(LinearInParameters):
-    """f(x, u) = [a0 x0 + a1 x1, a2 x0 + a3 u]: different regressors per row, so the metric of the
-    weighted regression matters (with identical regressors GLS equals OLS row by row)."""
-
-    def __init__(self):
-        super().__init__()
-        self.A = torch.nn.Parameter(torch.tensor([0.5, 0.1, -0.2, 0.6], dtype=torch.float64))
-
-    def features(self, x, u):
-        z = torch.zeros_like(x[..., :1])
-        rows = [torch.cat([x, z, z], -1), torch.cat([z, z, x[..., :1], u], -1)]
-        return torch.stack(rows, -2), torch.zeros_like(x)
-
-
-class _TwoStateG(LinearInParameters):
-    """g(x, u) = c x_0 + x_1."""
-
-    def __init__(self):
-        super().__init__()
-        self.c = torch.nn.Parameter(torch.tensor(0.7, dtype=torch.float64))
-
-    def features(self, x, u):
-        return x[..., :1].unsqueeze(-1), x[..., 1:2]
-
-
-def test_batched_m_step_uses_the_process_noise_metric_with_two_states(monkeypatch):
-    """With nx = 2 and a non-diagonal Rw the theta_f metric matters: batched == per data set."""
-    import torch_nssm.batch as batch
-
-    rng = np.random.default_rng(0)
-    us, ys = [], []
-    for _ in range(2):
-        u = rng.standard_normal(120)
-        x = np.zeros((120, 2))
-        for k in range(119):
-            x[k + 1] = [0.8 * x[k, 0] + 0.2 * x[k, 1], -0.3 * x[k, 0] + u[k]] + 0.3 * rng.standard_normal(2)
-        us.append(u)
-        ys.append(x[:, 0] + x[:, 1] + 0.2 * rng.standard_normal(120))
-    proto = RobustNSSMEstimator(
-        _TwoStateF(),
-        _TwoStateG(),
-        x0_mean=[0.0, 0.0],
-        Rw_init=[[0.2, 0.15], [0.15, 0.3]],
-        n_particles=40,
-        n_iter=3,
-        tol=0,
-        random_state=0,
-    )
-    fast = fit_independent(proto, us, ys)
-    monkeypatch.setattr(batch, "_batchable", lambda module: False)
-    slow = fit_independent(proto, us, ys)
-    for a, b in zip(fast, slow):
-        np.testing.assert_allclose(a.f_.A.detach().numpy(), b.f_.A.detach().numpy(), rtol=1e-6)
-        np.testing.assert_allclose(a.Rw_, b.Rw_, rtol=1e-6)
-
-
-class _TwoOutputG(LinearInParameters):
-    """g(x, u) = [c0 x_0 + x_1, c1 x_1]: two outputs, so the measurement metric is a 2x2 matrix."""
-
-    def __init__(self):
-        super().__init__()
-        self.c = torch.nn.Parameter(torch.tensor([0.7, 1.3], dtype=torch.float64))
-
-    def features(self, x, u):
-        z = torch.zeros_like(x[..., :1])
-        Phi = torch.stack([torch.cat([x[..., :1], z], -1), torch.cat([z, x[..., 1:2]], -1)], -2)
-        return Phi, torch.cat([x[..., 1:2], z], -1)
-
-
-def test_batched_m_step_with_two_outputs_and_missing_components(monkeypatch):
-    """p = 2, a full Rv and single missing components: the batched M-step equals the per-set one."""
-    import torch_nssm.batch as batch
-
-    rng = np.random.default_rng(1)
-    us, ys = [], []
-    for n in (110, 90):  # different lengths: padded rows must not count
-        u = rng.standard_normal(n)
-        x = np.zeros((n, 2))
-        for k in range(n - 1):
-            x[k + 1] = [0.8 * x[k, 0] + 0.2 * x[k, 1], -0.3 * x[k, 0] + u[k]] + 0.3 * rng.standard_normal(2)
-        y = np.stack([x[:, 0] + x[:, 1], 1.2 * x[:, 1]], 1) + 0.2 * rng.standard_normal((n, 2))
-        y[rng.random((n, 2)) < 0.1] = np.nan
-        us.append(u)
-        ys.append(y)
-    proto = RobustNSSMEstimator(
-        _TwoStateF(),
-        _TwoOutputG(),
-        x0_mean=[0.0, 0.0],
-        Rv_init=[[0.1, 0.03], [0.03, 0.2]],
-        n_particles=40,
-        n_iter=3,
-        tol=0,
-        random_state=0,
-    )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        fast = fit_independent(proto, us, ys)
-        monkeypatch.setattr(batch, "_batchable", lambda module: False)
-        slow = fit_independent(proto, us, ys)
-    for a, b in zip(fast, slow):
-        np.testing.assert_allclose(a.g_.c.detach().numpy(), b.g_.c.detach().numpy(), rtol=1e-6)
-        np.testing.assert_allclose(a.Rv_, b.Rv_, rtol=1e-6)
-        np.testing.assert_allclose(a.dof_, b.dof_, rtol=1e-6)
-        np.testing.assert_allclose(a.f_.A.detach().numpy(), b.f_.A.detach().numpy(), rtol=1e-6)
 
 
 def test_noise_covariances_can_be_held_fixed(paper_data):

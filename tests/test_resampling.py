@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torch_nssm.resampling import (
+from torch_nssm.inference.resampling import (
     RESAMPLING_SCHEMES,
     effective_sample_size,
     get_resampler,
@@ -183,7 +183,7 @@ def test_get_resampler():
 def test_systematic_search_and_scatter_paths(monkeypatch, search_work, n):
     """Both implementations of systematic resampling (binary search for small problems, scatter and
     cumulative sum for large ones) are unbiased and give the same indices."""
-    from torch_nssm import resampling
+    from torch_nssm.inference import resampling
 
     B, L = 40000, RAW.size
     lw = _log_weights(B)

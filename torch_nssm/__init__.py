@@ -6,11 +6,10 @@
 """
 
 from . import datasets, models, neural, plotting, silverbox, warm_start
-from .batch import fit_independent
-from .estimator import RobustNSSMEstimator
-from .filtering import NumericalError
-from .parametric import LinearInParameters
-from .results import StateEstimate
+from .core.parametric import LinearInParameters
+from .estimator import RobustNSSMEstimator, fit_independent
+from .inference.filtering import NumericalError
+from .inference.results import StateEstimate
 from .warm_start import warm_start_estimator
 
 __all__ = [

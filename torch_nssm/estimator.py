@@ -7,54 +7,32 @@ The estimator validates its arguments, runs the EM loop (E-step and M-step live 
 from __future__ import annotations
 
 import copy
-import dataclasses
 import math
 import warnings
-from collections import defaultdict
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 import torch
-from sklearn.base import BaseEstimator, RegressorMixin
+from sklearn.base import BaseEstimator, RegressorMixin, clone
 from sklearn.exceptions import ConvergenceWarning, NotFittedError
 from sklearn.metrics import r2_score
 from sklearn.utils import check_random_state
 from torch import nn
-from tqdm import tqdm
 
 from . import _validation as V
-from . import prediction
-from .em import SMOOTHERS, EStepOutput, MStepOptions, e_step, latent_scales, m_step
-from .filtering import NumericalError, particle_filter
-from .model import SequenceBatch, StateSpaceModel
-from .mstep import OPTIMIZERS
-from .resampling import RESAMPLING_SCHEMES
-from .results import StateEstimate
-from .smoothing import smoothed_moments
+from .core.model import SequenceBatch, StateSpaceModel
+from .core.noise import NOISE_MODELS, get_noise_model
+from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
+from .estimation.loop import EMOptions, EMResult, run_em
+from .estimation.mstep import MStepOptions
+from .estimation.solvers import SOLVERS, SolverSettings
+from .inference import prediction
+from .inference.filtering import NumericalError, particle_filter
+from .inference.resampling import RESAMPLING_SCHEMES
+from .inference.results import StateEstimate
+from .inference.smoothing import SMOOTHERS, smoothed_moments, smoother_options
 
-__all__ = ["RobustNSSMEstimator"]
-
-NOISE_MODELS = ("student-t", "gaussian")
-#: Convergence compares the mean log-likelihood estimate of the last CONVERGENCE_WINDOW iterations
-#: with that of the window before: single particle estimates are too noisy to compare.
-CONVERGENCE_WINDOW = 5
-
-
-@dataclass
-class _EMRun:
-    """The outcome of one EM run: the last good model and E-step, or the error that stopped it."""
-
-    model: StateSpaceModel | None
-    est: EStepOutput | None
-    history: dict
-    n_done: int
-    converged: bool
-    error: NumericalError | None = None
-
-    @property
-    def log_likelihood(self) -> float:
-        return -math.inf if self.est is None else float(self.est.log_likelihood.sum())
-
+__all__ = ["RobustNSSMEstimator", "fit_independent"]
 
 class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     """Robust identification of a nonlinear state-space model by EM with a particle smoother.
@@ -93,8 +71,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         data; a large start can let the fit settle where ``g`` explains nothing (NOTES §7).
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise.
-    noise : {"student-t", "gaussian"}, default="student-t"
-        Measurement-noise model; ``"gaussian"`` is the non-robust baseline (Gopaluni 2008).
+    noise : {"student-t", "gaussian", "student-t-per-output"}, default="student-t"
+        Measurement-noise model: the multivariate Student-t (one outlier weight per sample),
+        ``"gaussian"`` (the non-robust baseline, Gopaluni 2008), or ``"student-t-per-output"``
+        (independent t per output with diagonal ``Rv`` and one ``dof`` per output: a glitch in one
+        sensor down-weights only that sensor).
     fit_dof : bool, default=True
         Estimate the DOF; if False it stays at ``dof_init``.
     dof_bounds : (float, float), default=(0.1, 1000.0)
@@ -163,7 +144,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Resample when the effective sample size is below ``ess_threshold * n_particles``
         (1.0: at every step).
     chunk_size : int, optional
-        Smoother chunk size (memory bound); automatic if omitted.
+        FFBSm's chunk size (memory bound); automatic if omitted (a shortcut for
+        ``smoother_options={"chunk_size": ...}``).
+    smoother_options : dict, optional
+        Keyword options of the chosen smoother (e.g. ``{"kernel_dtype": torch.float64}`` for
+        ``"ffbsm"``, ``{"mcmc_steps": 2}`` or ``{"n_trajectories": 500}`` for ``"mcmc"``).
     random_state : int, RandomState or None
         Seed of the particle methods and of the restarts.  With an int, every call (``fit``,
         ``smooth``, ``predict(..., horizon=k)``, ``simulate``...) is reproducible; the methods
@@ -247,6 +232,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         resampling: str = "systematic",
         ess_threshold: float = 1.0,
         chunk_size: int | None = None,
+        smoother_options: dict | None = None,
         random_state=None,
         device="cpu",
         dtype: torch.dtype = torch.float64,
@@ -281,6 +267,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.resampling = resampling
         self.ess_threshold = ess_threshold
         self.chunk_size = chunk_size
+        self.smoother_options = smoother_options
         self.random_state = random_state
         self.device = device
         self.dtype = dtype
@@ -305,9 +292,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ checks and set-up
     def _check_params(self) -> torch.device:
-        V.check_choice(self.noise, "noise", NOISE_MODELS)
-        V.check_choice(self.optimizer, "optimizer", OPTIMIZERS)
-        V.check_choice(self.smoother, "smoother", SMOOTHERS)
+        V.check_choice(self.noise, "noise", sorted(NOISE_MODELS))
+        V.check_choice(self.optimizer, "optimizer", sorted(SOLVERS))
+        V.check_choice(self.smoother, "smoother", sorted(SMOOTHERS))
         V.check_choice(self.resampling, "resampling", sorted(RESAMPLING_SCHEMES))
         V.check_positive(self.n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
         if self.n_particles_final is not None:
@@ -336,6 +323,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             raise ValueError(f"dof_bounds must satisfy 0 < low < high, got {self.dof_bounds!r}")
         if self.chunk_size is not None:
             V.check_positive(self.chunk_size, "chunk_size", integer=True, minimum=1, inclusive=True)
+        if self.smoother_options is not None:
+            if not isinstance(self.smoother_options, dict):
+                kind = type(self.smoother_options).__name__
+                raise TypeError(f"smoother_options must be a dict, got {kind}")
+            allowed = smoother_options(self.smoother)
+            unknown = sorted(set(self.smoother_options) - set(allowed))
+            if unknown:
+                raise ValueError(
+                    f"smoother_options has {unknown}, which smoother={self.smoother!r} does not take "
+                    f"(its options: {list(allowed)})"
+                )
         V.check_dtype(self.dtype)
         if self.x0_mean is None:
             raise ValueError("x0_mean is required: it fixes the state dimension nx")
@@ -373,49 +371,55 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         f = copy.deepcopy(self.f).to(**kw)
         g = copy.deepcopy(self.g).to(**kw)
         V.check_module_shapes(f, g, nx, nu, p, **kw)
-        dof = torch.tensor(math.inf if self.noise == "gaussian" else float(self.dof_init), **kw)
-        return StateSpaceModel(f, g, Rw, Rv, dof, x0_mean, x0_cov)
+        noise = get_noise_model(self.noise).initial(Rv, float(self.dof_init))
+        return StateSpaceModel(f, g, Rw, noise, x0_mean, x0_cov)
 
-    def _mstep_options(self) -> MStepOptions:
-        return MStepOptions(
-            optimizer=self.optimizer,
-            max_iter=self.max_iter_mstep,
-            learning_rate=self.learning_rate,
-            fit_dof=self.fit_dof,
-            dof_bounds=tuple(float(b) for b in self.dof_bounds),
-            fit_x0=self.fit_x0,
-            fit_Rw=bool(self.fit_Rw),
-            fit_Rv=bool(self.fit_Rv),
-            batch_size=self.batch_size,
-            generator=self._generator(torch.device("cpu")),
+    def _em_options(self, progress: str | None = None) -> EMOptions:
+        """The EM loop's settings from the estimator's parameters."""
+        smoother_opts = dict(self.smoother_options or {})
+        if self.chunk_size is not None and self.smoother == "ffbsm":
+            smoother_opts.setdefault("chunk_size", self.chunk_size)
+        return EMOptions(
+            n_iter=self.n_iter,
+            tol=self.tol,
+            n_particles_final=self.n_particles_final,
+            average_last=self.average_last,
+            estep=EStepOptions(
+                n_particles=self.n_particles,
+                smoother=self.smoother,
+                smoother_options=smoother_opts,
+                resampling=self.resampling,
+                ess_threshold=self.ess_threshold,
+            ),
+            mstep=MStepOptions(
+                optimizer=self.optimizer,
+                solver=SolverSettings(
+                    max_iter=self.max_iter_mstep,
+                    learning_rate=self.learning_rate,
+                    batch_size=self.batch_size,
+                    generator=self._generator(torch.device("cpu")),
+                ),
+                fit_dof=bool(self.fit_dof),
+                dof_bounds=tuple(float(b) for b in self.dof_bounds),
+                fit_x0=bool(self.fit_x0),
+                fit_Rw=bool(self.fit_Rw),
+                fit_Rv=bool(self.fit_Rv),
+            ),
+            progress=progress if self.verbose else None,
         )
 
-    def _particles(self, iteration: int | None = None) -> int:
-        """Particle count at EM ``iteration`` (``None``: after fitting)."""
-        if self.n_particles_final is None:
-            return self.n_particles
-        if iteration is None or self.n_iter == 0:
-            return self.n_particles_final
-        frac = min(iteration, self.n_iter) / self.n_iter
-        return int(round(self.n_particles * (self.n_particles_final / self.n_particles) ** frac))
-
-    def _e_step(self, model, data, generator, iteration: int | None = None) -> EStepOutput:
-        return e_step(
-            model,
-            data,
-            self._particles(iteration),
-            smoother=self.smoother,
-            resampling=self.resampling,
-            ess_threshold=self.ess_threshold,
-            chunk_size=self.chunk_size,
-            generator=generator,
-        )
+    def _e_step(self, model, data, generator):
+        """The E-step at the final particle count (``smooth``, outlier weights)."""
+        options = self._em_options()
+        estep = options.estep
+        estep.n_particles = options.n_particles(None)
+        return e_step(model, data, estep, generator)
 
     def _filter(self, model, data, generator):
         return particle_filter(
             model,
             data,
-            self._particles(),
+            self._em_options().n_particles(None),
             resampling=self.resampling,
             ess_threshold=self.ess_threshold,
             generator=generator,
@@ -455,29 +459,41 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
         rs = check_random_state(self.random_state)
-        runs: list[_EMRun] = []
+        runs: list[EMResult] = []
         for r in range(n_runs):
             generator = _seeded_generator(device, rs)  # run 0: the same seed as _generator()
             start = _copy_model(base) if r == 0 else _jittered(base, self.init_jitter, rs)
-            runs.append(self._run_em(start, data, generator, run=(r, n_runs)))
-        ok = [run for run in runs if run.error is None]
+            desc = "robust EM" if n_runs == 1 else f"robust EM (run {r + 1}/{n_runs})"
+            runs.append(run_em([start], data, self._em_options(desc), generator)[0])
+            if runs[-1].interrupted:
+                break
+        ok = [run for run in runs if run.error is None and run.estep is not None]
         init_lls = np.array([run.log_likelihood if run.error is None else -np.inf for run in runs])
+        y_1d = _is_1d(y, multi)
         if not ok:
-            candidates = [run for run in runs if run.model is not None]
+            candidates = [run for run in runs if run.estep is not None]
             if candidates:
                 last = max(candidates, key=lambda run: run.log_likelihood)
-                self._store_run(last, data, multi, warm, y, init_lls)
-            raise runs[0].error
+                self._store_run(last, data, multi, warm, y_1d, init_lls)
+            raise NumericalError(_error_message(runs[0]))
         if len(ok) < len(runs):
+            first = next(r.error for r in runs if r.error)
             warnings.warn(
                 f"{len(runs) - len(ok)} of {len(runs)} EM runs stopped on a numerical error and "
-                f"were discarded (first: {next(r.error for r in runs if r.error)})",
+                f"were discarded (first: {first})",
                 RuntimeWarning,
                 stacklevel=2,
             )
         best = max(ok, key=lambda run: run.log_likelihood)
-        self._store_run(best, data, multi, warm, y, init_lls)
-        if not best.converged and self.tol > 0 and self.n_iter > 0:
+        self._store_run(best, data, multi, warm, y_1d, init_lls)
+        if best.interrupted:
+            warnings.warn(
+                f"fit interrupted (KeyboardInterrupt) after {best.n_done} EM iterations: the fitted "
+                "attributes hold the last completed iteration",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        elif not best.converged and self.tol > 0 and self.n_iter > 0:
             warnings.warn(
                 f"EM did not converge in n_iter={self.n_iter} iterations (tol={self.tol}); "
                 "raise n_iter or tol, or average the last iterates",
@@ -486,65 +502,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         return self
 
-    def _run_em(self, model: StateSpaceModel, data: SequenceBatch, generator, run) -> _EMRun:
-        """EM from ``model`` until convergence, ``n_iter`` or a numerical error."""
-        options = self._mstep_options()
-        n_obs = int(data.obs_mask.any(-1).sum())
-        history: dict[str, list] = defaultdict(list)
-        try:
-            est = self._e_step(model, data, generator, 0)
-        except (NumericalError, torch.linalg.LinAlgError) as exc:
-            msg = f"EM could not start: the E-step failed at the initial parameters: {exc}"
-            return _EMRun(None, None, history, 0, False, NumericalError(msg))
-        lls: list[float] = []
-        n_done, converged, error = 0, False, None
-        desc = "robust EM" if run[1] == 1 else f"robust EM (run {run[0] + 1}/{run[1]})"
-        bar = _progress_bar(total=self.n_iter, desc=desc, enabled=bool(self.verbose))
-        try:
-            for it in range(self.n_iter + 1):
-                ll = float(est.log_likelihood.sum())
-                _record(history, model, ll)
-                lls.append(ll)
-                if _converged(lls, n_obs, self.tol):
-                    converged = True
-                    break
-                if it == self.n_iter:
-                    break
-                backup = (copy.deepcopy(model.f.state_dict()), copy.deepcopy(model.g.state_dict()))
-                try:
-                    new_model = m_step(model, data, est, options)
-                    new_est = self._e_step(new_model, data, generator, it + 1)
-                except (NumericalError, torch.linalg.LinAlgError) as exc:
-                    model.f.load_state_dict(backup[0])  # m_step updates the modules in place
-                    model.g.load_state_dict(backup[1])
-                    error = NumericalError(
-                        f"EM stopped at iteration {it + 1}: {exc}. The fitted attributes hold the "
-                        f"last good parameters (after iteration {it})."
-                    )
-                    break
-                model, est = new_model, new_est
-                n_done += 1
-                bar.update(1)
-                bar.set_postfix(
-                    loglik=f"{float(est.log_likelihood.sum()) / n_obs:.4f}/obs", dof=f"{float(model.dof):.3g}"
-                )
-        finally:
-            bar.close()
-        K = self.average_last
-        if error is None and K > 1 and n_done >= K:
-            model = _averaged(model, history, K)
-            est = self._e_step(model, data, generator)
-        elif error is None and self.n_particles_final is not None and n_done > 0:
-            est = self._e_step(model, data, generator)  # the final particle count
-        return _EMRun(model, est, history, n_done, converged, error)
-
-    def _store_run(self, run: _EMRun, data, multi, warm: bool, y, init_lls) -> None:
+    def _store_run(self, run: EMResult, data, multi, warm: bool, y_1d: bool, init_lls) -> None:
         history = run.history
         if warm:  # continue the previous trajectories; index 0 of this run repeats their end
             history = {k: list(self.history_[k]) + list(v[1:]) for k, v in history.items()}
-        first = y[0] if multi else y
-        ndim = first.dim() if isinstance(first, torch.Tensor) else np.asarray(first).ndim
-        self._store(run.model, history, run.est, data, multi, run.n_done, run.converged, y_1d=ndim == 1)
+        self._store(run.model, history, run.estep, data, multi, run.n_done, run.converged, y_1d=y_1d)
         self.init_log_likelihoods_ = init_lls
 
     def _store(self, model, history, est, data, multi, n_done, converged, *, y_1d=False) -> None:
@@ -552,11 +514,15 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.g_ = model.g
         self.Rw_ = model.Rw.detach().cpu().numpy()
         self.Rv_ = model.Rv.detach().cpu().numpy()
-        self.dof_ = float(model.dof)
+        dof = getattr(model.noise, "dof", None)
+        if dof is None:
+            self.dof_ = math.inf
+        else:
+            self.dof_ = float(dof) if dof.dim() == 0 else dof.detach().cpu().numpy()
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
-        ow = _outlier_weights(est.smoother.log_weights, est.e_lam, data)
+        ow = outlier_weights(est.smoother.log_weights, est.e_lam, data)
         self.outlier_weights_ = ow if multi else ow[0]
         self.log_likelihood_ = float(est.log_likelihood.sum())
         self.n_iter_ = n_done
@@ -579,12 +545,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         """The fitted model on ``device``, with copies of the fitted modules."""
         kw = dict(dtype=self.dtype, device=device)
         t = lambda a: torch.as_tensor(a, **kw)  # noqa: E731
+        family = get_noise_model(self.noise)
+        noise = family(**{name: t(getattr(self, f"{name}_")) for name in family.CORE_DIMS})
         return StateSpaceModel(
             copy.deepcopy(self.f_).to(**kw),
             copy.deepcopy(self.g_).to(**kw),
             t(self.Rw_),
-            t(self.Rv_),
-            t(self.dof_),
+            noise,
             t(self.x0_mean_),
             t(self.x0_cov_),
         )
@@ -734,7 +701,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         else:
             filt = self._filter(model, data, gen)
             log_w, e_lam = filt.log_weights, latent_scales(model, data, filt)[0]
-        ow = _outlier_weights(log_w, e_lam, data)
+        ow = outlier_weights(log_w, e_lam, data)
         mean, cov = smoothed_moments(filt.particles, log_w)
         out = []
         for b, n in enumerate(data.lengths.tolist()):
@@ -787,33 +754,82 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         return float(filt.log_likelihood.sum())
 
 
-def _progress_bar(total: int, desc: str, enabled: bool):
-    """A tqdm bar (a notebook widget where available); imported only when shown."""
-    if not enabled:
-        return tqdm(total=total, disable=True)
-    from tqdm.auto import tqdm as auto_tqdm  # warns in kernels without ipywidgets: only if asked
+def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool | None = None) -> list:
+    """Fit one copy of ``estimator`` to each data set, all E-steps in one batched pass.
 
-    return auto_tqdm(total=total, desc=desc, leave=True)
+    Parameters
+    ----------
+    estimator : RobustNSSMEstimator
+        The settings (``f``, ``g``, initial values, ``n_iter``, ``tol``, particles, ...) used for
+        every data set; it is cloned, not changed.
+    u : list of array-like (N_b,) or (N_b, nu), or None
+        Inputs of each data set (``None`` for systems without input).
+    y : list of array-like (N_b,) or (N_b, p)
+        Outputs of each data set (NaN: missing).
+    show_progress : bool, optional
+        Progress bar over iterations; defaults to ``estimator.verbose > 0``.
+
+    Returns
+    -------
+    list of RobustNSSMEstimator
+        Fitted estimators, one per data set, each with its own parameters, ``history_``,
+        ``n_iter_`` and ``converged_`` (a data set leaves the batch once it has converged).
+    """
+    device = estimator._check_params()
+    if not V.is_sequence_list(y):
+        raise ValueError("y must be a list of data sets (one array per data set)")
+    n_sets = len(y)
+    us = [None] * n_sets if u is None else list(u)
+    if len(us) != n_sets:
+        raise ValueError(f"u and y must hold the same number of data sets, got {len(us)} and {n_sets}")
+    datas, models, estimators = [], [], []
+    for b in range(n_sets):
+        ub, yb, _ = V.as_sequence_list(us[b], y[b], dtype=estimator.dtype, device=device)
+        datas.append(SequenceBatch.from_sequences(ub, yb))
+        est_b = clone(estimator)
+        if isinstance(estimator.random_state, int):
+            est_b.random_state = estimator.random_state + b
+        estimators.append(est_b)
+        models.append(est_b._initial_model(datas[-1], device))
+    all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
+    verbose = estimator.verbose > 0 if show_progress is None else show_progress
+    options = estimator._em_options(f"robust EM x{n_sets}")
+    if not verbose:
+        options.progress = None
+    elif options.progress is None:
+        options.progress = f"robust EM x{n_sets}"
+    results = run_em(models, all_data, options, estimator._generator(device), shared=False)
+    n_unconverged = 0
+    for b, (est_b, run) in enumerate(zip(estimators, results)):
+        if run.error is not None:
+            warnings.warn(f"data set {b}: {run.error}", stacklevel=2)
+        if run.estep is None:
+            raise NumericalError(f"data set {b}: {run.error}")
+        # the stored E-step is padded like the batch (lengths kept)
+        est_b._store(
+            run.model, run.history, run.estep, all_data.select(slice(b, b + 1)), False, run.n_done,
+            run.converged, y_1d=np.ndim(y[b]) == 1,
+        )
+        n_unconverged += not run.converged
+    if results and results[0].interrupted:
+        warnings.warn(
+            "fit_independent interrupted (KeyboardInterrupt): each fit holds its last completed iteration",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    elif n_unconverged and estimator.tol > 0 and estimator.n_iter > 0:
+        warnings.warn(
+            f"{n_unconverged} of {n_sets} fits did not converge in n_iter={estimator.n_iter} iterations",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return estimators
 
 
 def _seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.Generator:
     gen = torch.Generator(device=device)
     gen.manual_seed(int(rs.randint(0, 2**31 - 1)))
     return gen
-
-
-def _averaged(model: StateSpaceModel, history: dict, k: int) -> StateSpaceModel:
-    """The model at the average of the last ``k`` recorded iterates (parameters and noise)."""
-    for label, module in (("f", model.f), ("g", model.g)):
-        with torch.no_grad():
-            for name, p in module.named_parameters():
-                if p.requires_grad:
-                    p.copy_(torch.as_tensor(np.mean(history[f"{label}.{name}"][-k:], axis=0)))
-    t = lambda key, like: torch.as_tensor(np.mean(history[key][-k:], axis=0)).to(like)  # noqa: E731
-    dof = model.dof if bool(torch.isinf(model.dof)) else t("dof", model.dof)
-    return dataclasses.replace(
-        model, Rw=t("Rw", model.Rw), Rv=t("Rv", model.Rv), dof=dof, x0_mean=t("x0_mean", model.x0_mean)
-    )
 
 
 def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
@@ -832,13 +848,6 @@ def _jittered(model: StateSpaceModel, scale: float, rs: np.random.RandomState) -
     return new
 
 
-def _outlier_weights(log_w: torch.Tensor, e_lam: torch.Tensor, data: SequenceBatch):
-    """``E[lam_k | y]`` per record, under the weights ``log_w`` (NaN where ``y_k`` is missing)."""
-    ow = (torch.exp(log_w) * e_lam).sum(-1)
-    ow = torch.where(data.obs_mask.any(-1), ow, torch.full_like(ow, math.nan))
-    return [a.detach().cpu().numpy() for a in data.unpad(ow)]
-
-
 def default_rv_init(y: np.ndarray) -> torch.Tensor:
     """Default initial ``diag(Rv)``: ``0.02`` times a robust variance of each output column."""
     med = np.nanmedian(y, axis=0)
@@ -847,20 +856,12 @@ def default_rv_init(y: np.ndarray) -> torch.Tensor:
     return torch.from_numpy(0.02 * np.where(var > 0, var, 1.0))
 
 
-def _record(history: dict, model: StateSpaceModel, ll: float) -> None:
-    history["log_likelihood"].append(ll)
-    for label, module in (("f", model.f), ("g", model.g)):
-        for name, p in module.named_parameters():
-            history[f"{label}.{name}"].append(p.detach().cpu().numpy().copy())
-    history["Rw"].append(model.Rw.detach().cpu().numpy())
-    history["Rv"].append(model.Rv.detach().cpu().numpy())
-    history["dof"].append(float(model.dof))
-    history["x0_mean"].append(model.x0_mean.detach().cpu().numpy())
+def _is_1d(y, multi: bool) -> bool:
+    first = y[0] if multi else y
+    return (first.dim() if isinstance(first, torch.Tensor) else np.asarray(first).ndim) == 1
 
 
-def _converged(lls: list[float], n_obs: int, tol: float) -> bool:
-    w = CONVERGENCE_WINDOW
-    if tol <= 0 or len(lls) < 2 * w:
-        return False
-    recent, before = np.mean(lls[-w:]), np.mean(lls[-2 * w : -w])
-    return abs(recent - before) / max(n_obs, 1) < tol
+def _error_message(run: EMResult) -> str:
+    if run.estep is None or run.n_done == 0 and run.error and "could not start" in run.error:
+        return run.error
+    return f"{run.error}. The fitted attributes hold the last good parameters (after iteration {run.n_done})."

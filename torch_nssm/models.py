@@ -17,8 +17,8 @@ import torch
 from torch import Tensor, nn
 
 from ._ops import broadcast_leading
+from .core.parametric import LinearInParameters
 from .datasets import MANIPULATOR_DT, ManipulatorConstants, SimulatedData
-from .parametric import LinearInParameters
 
 __all__ = [
     "PaperTransition",

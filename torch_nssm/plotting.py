@@ -11,7 +11,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from sklearn.exceptions import NotFittedError
 
-from .results import StateEstimate
+from .inference.results import StateEstimate
 
 __all__ = ["plot_history", "plot_outliers", "plot_states"]
 

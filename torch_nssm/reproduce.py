@@ -33,7 +33,6 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .batch import fit_independent
 from .datasets import (
     SimulatedData,
     make_gopaluni_example,
@@ -42,7 +41,7 @@ from .datasets import (
     make_paper_example,
     manipulator_transition_matrix,
 )
-from .estimator import RobustNSSMEstimator
+from .estimator import RobustNSSMEstimator, fit_independent
 from .models import ManipulatorObservation, ManipulatorTransition, PaperObservation, PaperTransition
 
 __all__ = [

@@ -41,9 +41,9 @@ from torch import Tensor, nn
 
 from . import _validation as V
 from ._ops import broadcast_leading
+from .core.parametric import LinearInParameters
 from .datasets import SILVERBOX_ARROW_END, SILVERBOX_FS, load_silverbox
 from .estimator import RobustNSSMEstimator
-from .parametric import LinearInParameters
 
 __all__ = [
     "DuffingTransition",

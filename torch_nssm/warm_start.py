@@ -53,9 +53,10 @@ from torch import Tensor, nn
 
 from . import _validation as V
 from ._ops import broadcast_leading
-from .estimator import NOISE_MODELS, RobustNSSMEstimator
+from .core.noise import NOISE_MODELS
+from .core.parametric import LinearInParameters
+from .estimator import RobustNSSMEstimator
 from .neural import GreyBoxTransition, MLPObservation, MLPTransition
-from .parametric import LinearInParameters
 
 __all__ = ["LinearTransition", "LinearObservation", "distill", "warm_start_estimator", "WarmStartInfo"]
 
@@ -507,7 +508,7 @@ def warm_start_estimator(
                 f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
             )
     if noise is not None:
-        V.check_choice(noise, "noise", NOISE_MODELS)
+        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
     V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
     if n_particles is not None:
         V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)

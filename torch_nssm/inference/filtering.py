@@ -1,4 +1,4 @@
-"""Bootstrap particle filter with Student-t (or Gaussian) measurement noise, batched over sequences.
+"""Bootstrap particle filter, batched over sequences, for any measurement-noise family.
 
 All weights stay in the log domain.  The filter keeps every time step's particles and normalised
 weights (before resampling), which is what the smoothers need (NOTES §2-3).
@@ -13,9 +13,9 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from ._ops import small_matmul, squared_norm
-from .model import SequenceBatch, StateSpaceModel
-from .noise import MaskedScale, masked_scale, student_t_log_prob
+from .._ops import small_matmul
+from ..core.model import SequenceBatch, StateSpaceModel
+from ..core.noise import MaskedScale, masked_scale
 from .resampling import get_resampler, systematic, systematic_from_cumsum, systematic_grid
 
 __all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
@@ -44,8 +44,9 @@ class FilterOutput:
     ancestors : Tensor, shape (T, B, L), long
         ``ancestors[k, b, l]`` is the index at ``k - 1`` of the parent of particle ``l`` at ``k``
         (``ancestors[0]`` is the identity).
-    delta2 : Tensor, shape (T, B, L), optional
-        Squared whitened output residual of every particle (the E-step's latent scales reuse it).
+    noise_statistics : Tensor, shape (T, B, L, ...), optional
+        What the noise model recorded of every particle's whitened residual (e.g. its squared
+        norm); the E-step's latent scales reuse it.
     """
 
     particles: Tensor
@@ -54,7 +55,7 @@ class FilterOutput:
     ess: Tensor
     scale: MaskedScale
     ancestors: Tensor
-    delta2: Tensor | None = None
+    noise_statistics: Tensor | None = None
 
     def select(self, index) -> FilterOutput:
         """The filter output of the sequences ``index``."""
@@ -65,16 +66,8 @@ class FilterOutput:
             self.ess[:, index],
             self.scale.select(index),
             self.ancestors[:, index],
-            None if self.delta2 is None else self.delta2[:, index],
+            None if self.noise_statistics is None else self.noise_statistics[:, index],
         )
-
-
-def _mahalanobis(y0: Tensor, C: Tensor, gx: Tensor) -> Tensor:
-    """Squared whitened residual norms ``delta2`` (B, L) of one step's outputs ``y0`` (B, p, missing
-    entries 0) for the particles' predicted outputs ``gx`` (B, L, p), with the whitener ``C``
-    (B, p, p) of :meth:`MaskedScale.whitener`."""
-    r = y0.unsqueeze(-2) - gx  # (B, L, p)
-    return squared_norm(small_matmul(C.unsqueeze(-3), r.unsqueeze(-1)).squeeze(-1))
 
 
 def _process_noise(model: StateSpaceModel, L: int, generator, out: Tensor) -> None:
@@ -99,14 +92,6 @@ def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
     :meth:`LinearInParameters.frozen`, parameters gathered once), else the module."""
     frozen = getattr(module, "frozen", None)
     return frozen() if callable(frozen) else module
-
-
-def _log_density_terms(model: StateSpaceModel, scale: MaskedScale, B: int) -> tuple[Tensor, Tensor, Tensor]:
-    """Per-(T, B) terms of the log-density, ``logp = const - coef * log1p(delta2 / nu)`` for a t,
-    ``const - delta2 / 2`` for a Gaussian (signalled by ``nu = inf``): computed once, not per step."""
-    dof = model.per_sequence("dof", B).unsqueeze(0)  # (1, B)
-    const = student_t_log_prob(torch.zeros_like(scale.logdet), scale.logdet, scale.n_obs, dof)
-    return const, 0.5 * (dof + scale.n_obs), dof.expand_as(const)
 
 
 def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator=None) -> Tensor:
@@ -156,14 +141,14 @@ def particle_filter(
     fast_systematic = resample is systematic
     T, B = data.n_steps, data.n_sequences
     L = n_particles
-    scale = masked_scale(model.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
+    scale = masked_scale(model.noise.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
+    density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density
     x0 = sample_initial_state(model, B, L, generator)
     nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
     # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
     particles = torch.empty(T, B, L, nx, dtype=dtype, device=device)
     log_weights = torch.empty(T, B, L, dtype=dtype, device=device)
     ancestors = torch.empty(T, B, L, dtype=torch.long, device=device)
-    delta2_all = torch.empty(T, B, L, dtype=dtype, device=device)
     particles[0] = x0
     arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange
@@ -175,8 +160,6 @@ def particle_filter(
         uniforms = torch.rand(max(T - 1, 0), B, 1, dtype=dtype, device=device, generator=generator).unbind(0)
         grid = systematic_grid(B, L, dtype, device)
         ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
-    const, coef, nu = _log_density_terms(model, scale, B)
-    gaussian = bool(torch.isinf(nu).all())
     y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
     p = y0.shape[-1]
     if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
@@ -189,15 +172,11 @@ def particle_filter(
     s_all = torch.empty(T, B, 1, dtype=dtype, device=device)
     norm_all = torch.empty(T, B, 1, dtype=dtype, device=device)
     # Views of every step, made once (indexing a list is free, a tensor select is an operation).
-    X, LW, A, D = particles.unbind(0), log_weights.unbind(0), ancestors.unbind(0), delta2_all.unbind(0)
+    X, LW, A = particles.unbind(0), log_weights.unbind(0), ancestors.unbind(0)
     A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
-    D3 = delta2_all.unsqueeze(-1).unbind(0)
     M, S, NORM = m_all.unbind(0), s_all.unbind(0), norm_all.unbind(0)
     U = data.u.unsqueeze(-2).expand(T, B, L, data.u.shape[-1]).unbind(0)  # model.transition's expand
     f, g = _frozen(model.f), _frozen(model.g)
-    if not gaussian:
-        neg_coef = (-coef).unsqueeze(-1).unbind(0)
-        inv_nu = (1.0 / nu).unsqueeze(-1).unbind(0)
     log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
     log_w = log_uniform  # normalised log-weights (needed only without ``always``)
     e = log_uniform  # exp(logit - m) of the previous step (set at k = 0 before its first use)
@@ -220,16 +199,10 @@ def particle_filter(
             x.add_(f(torch.gather(X[k - 1], 1, A_gather[k]), U[k - 1]))
         gx = g(x, U[k])
         if p == 1:
-            r = torch.addcmul(cy[k], gx, c1[k], value=-1.0)
-            torch.mul(r, r, out=D3[k])
-            delta2 = D[k]
+            z = torch.addcmul(cy[k], gx, c1[k], value=-1.0)
         else:
-            delta2 = D[k]
-            delta2.copy_(_mahalanobis(y0[k], C[k], gx))
-        if gaussian:
-            logits = delta2 * -0.5
-        else:
-            logits = torch.log1p_(delta2 * inv_nu[k]).mul_(neg_coef[k])
+            z = small_matmul(C[k].unsqueeze(-3), (y0[k].unsqueeze(-2) - gx).unsqueeze(-1)).squeeze(-1)
+        logits = density.step(k, z)
         if not always:
             logits = logits.add_(log_w)
         m = torch.amax(logits, dim=-1, keepdim=True, out=M[k])
@@ -244,7 +217,7 @@ def particle_filter(
     ess = (s_all / norm_all).square_().squeeze(-1)
     # log p(y_k | y_<k) = const_k + log sum_l W_{k-1,l} exp(logit_kl) = const_k + m_k + log s_k
     # (- log L when the previous weights are uniform after resampling at every step)
-    log_lik = (const + (m_all + log_s).squeeze(-1)).sum(0)
+    log_lik = (density.const + (m_all + log_s).squeeze(-1)).sum(0)
     if always:
         log_lik = log_lik - T * math.log(L)
     if not torch.isfinite(log_lik).all():
@@ -255,4 +228,4 @@ def particle_filter(
             "particle filter produced non-finite weights or states "
             f"({where}); check that f and g return finite values at the current parameters"
         )
-    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, delta2_all)
+    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, density.statistics)

@@ -13,7 +13,9 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-__all__ = ["LinearInParameters"]
+from .._ops import linear_combination, small_matmul, time_blocks
+
+__all__ = ["LinearInParameters", "linear_normal_equations", "solve_normal_equations"]
 
 
 class LinearInParameters(nn.Module):
@@ -98,23 +100,76 @@ class LinearInParameters(nn.Module):
         free = self.free_mask()
         if not bool(free.any()):
             return
-        Phi, offset = self.features(x, u)
-        theta = self.theta()
-        offset = offset + (Phi[..., ~free] @ theta[~free].unsqueeze(-1)).squeeze(-1)
-        A = Phi[..., free]  # (n, d, F)
-        r = torch.nan_to_num(target - offset)
-        d = A.shape[-2]
+        d = target.shape[-1]
         if precision is None:
-            precision = torch.eye(d, dtype=A.dtype, device=A.device)
-        PA = precision @ A
-        G = torch.einsum("n,ndf,ndg->fg", weight, A, PA)
-        h = torch.einsum("n,ndf,nd->f", weight, PA, r)
-        G = G + ridge * (torch.diagonal(G).mean().abs() + 1e-300) * torch.eye(
-            G.shape[0], dtype=G.dtype, device=G.device
+            precision = torch.eye(d, dtype=x.dtype, device=x.device)
+        # the rows as n time steps of one sequence with one particle; C^T C = P
+        evals, evecs = torch.linalg.eigh(precision)
+        C = torch.sqrt(evals.clamp_min(0)).unsqueeze(-1) * evecs.transpose(-1, -2)
+        C = C.reshape(-1, 1, d, d)
+        theta = self.theta()
+        G, h = linear_normal_equations(
+            self, theta.unsqueeze(0), x.view(-1, 1, 1, x.shape[-1]), u.view(-1, 1, u.shape[-1]),
+            torch.nan_to_num(target).view(-1, 1, 1, d), lambda sl: weight.view(-1, 1, 1)[sl], C,
         )
-        sol = torch.linalg.solve(G, h)
+        sol = solve_normal_equations(G[0], h[0], ridge)
         if not bool(torch.isfinite(sol).all()):
             return
         new_theta = theta.clone()
         new_theta[free] = sol
         self.set_theta(new_theta)
+
+
+def linear_normal_equations(
+    template: LinearInParameters,
+    thetas: Tensor,
+    x: Tensor,
+    u: Tensor,
+    target: Tensor,
+    weight: Callable[[slice], Tensor],
+    whitener: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Normal equations ``G`` ``(B, F, F)``, ``h`` ``(B, F)`` of the free parameters, per sequence.
+
+    Rows are time-major: ``x`` ``(T, B, L, nx)``, ``u`` ``(T, B, nu)``, ``target`` ``(T, B, L or 1,
+    d)`` (zero where missing); ``thetas`` ``(B, P)`` supplies the fixed entries; ``weight(sl)`` gives
+    the weights ``(t, B, L)`` (or ``(t, B, L, d)`` per whitened component) of the time block ``sl``;
+    ``whitener`` ``C`` ``(T or 1, B, d, d)`` defines the metric ``C^T C``.  The whitened components
+    of each row are rows of their own; the sums run block by block (bounded memory).
+    """
+    free = template.free_mask()
+    T, B = x.shape[:2]
+    F = int(free.sum())
+    G = torch.zeros(B, F, F, dtype=x.dtype, device=x.device)
+    h = torch.zeros(B, F, dtype=x.dtype, device=x.device)
+    fixed = thetas[:, ~free]
+    for sl in time_blocks(T, B * x.shape[2]):
+        xs = x[sl]
+        Phi, offset = template.features(xs, u[sl].unsqueeze(2).expand(*xs.shape[:-1], u.shape[-1]))
+        if fixed.shape[-1]:
+            offset = offset + linear_combination(Phi[..., ~free], fixed.view(1, B, 1, 1, -1))
+        A = Phi[..., free] if fixed.shape[-1] else Phi
+        r = target[sl] - offset
+        C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
+        w = weight(sl)
+        if A.shape[-2] == 1:  # one output: the metric is a scalar weight
+            w = w[..., 0] if w.dim() == 4 else w
+            A, r, w = A[..., 0, :], r[..., 0], w * C[..., 0, 0] ** 2
+        else:
+            # whitened components become rows of their own: (t, B, L * d, F) and (t, B, L * d)
+            A = small_matmul(C, A).flatten(2, 3)
+            r = small_matmul(C, r.unsqueeze(-1)).squeeze(-1).flatten(2, 3)
+            w = w.flatten(2, 3) if w.dim() == 4 else w.repeat_interleave(C.shape[-1], dim=2)
+        Aw = A * w.unsqueeze(-1)
+        # per-(step, sequence) products over the particles, then a sum over steps: ~4x faster than
+        # one einsum, which copies the block into sequence-major order first
+        G += (Aw.transpose(-1, -2) @ A).sum(0)
+        h += (Aw.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1).sum(0)
+    return G, h
+
+
+def solve_normal_equations(G: Tensor, h: Tensor, ridge: float = 1e-12) -> Tensor:
+    """``(G + ridge * mean(diag G) I)^-1 h`` for a batch ``(..., F, F)``."""
+    scale = torch.diagonal(G, dim1=-2, dim2=-1).mean(-1).abs() + 1e-300
+    eye = torch.eye(G.shape[-1], dtype=G.dtype, device=G.device)
+    return torch.linalg.solve(G + ridge * scale[..., None, None] * eye, h)

@@ -11,9 +11,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..core.model import StateSpaceModel
 from .filtering import FilterOutput, sample_initial_state
-from .model import StateSpaceModel
-from .noise import sample_student_t
 
 __all__ = ["free_run", "k_step_ahead", "simulate"]
 
@@ -109,10 +108,10 @@ def k_step_ahead(
 def simulate(
     model: StateSpaceModel, u: Tensor, n_samples: int, generator: torch.Generator | None = None
 ) -> tuple[Tensor, Tensor]:
-    """Sample state and output trajectories, process noise and Student-t measurement noise included.
+    """Sample state and output trajectories, process and measurement noise included.
 
     ``x_0 ~ N(x0_mean, x0_cov)``, ``x_{k+1} = f(x_k, u_k) + w_k``, ``y_k = g(x_k, u_k) + v_k`` with
-    ``w ~ N(0, Rw)`` and ``v ~ St(0, Rv, dof)`` (Gaussian when ``dof`` is infinite).
+    ``w ~ N(0, Rw)`` and ``v`` drawn from the model's measurement noise.
 
     Parameters
     ----------
@@ -137,6 +136,4 @@ def simulate(
         if k + 1 < T:
             x = _step(model, x, u[k], chol_w, generator)
     mean = model.observation(states, u)
-    chol_v = torch.linalg.cholesky(model.Rv)
-    noise = sample_student_t(mean.shape[:-1], chol_v, model.dof, generator=generator)
-    return states, mean + noise
+    return states, mean + model.noise.sample(mean.shape[:-1], generator=generator)

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from .noise import MeasurementNoise
+
 __all__ = ["StateSpaceModel", "SequenceBatch"]
 
 
@@ -86,17 +88,17 @@ class SequenceBatch:
 
 @dataclass
 class StateSpaceModel:
-    """``x_{k+1} = f(x_k, u_k) + w``, ``w ~ N(0, Rw)``; ``y_k = g(x_k, u_k) + v``, ``v ~ St(0, Rv, dof)``.
+    """``x_{k+1} = f(x_k, u_k) + w``, ``w ~ N(0, Rw)``; ``y_k = g(x_k, u_k) + v``, ``v ~ noise``.
 
-    ``dof = inf`` is Gaussian measurement noise.  ``Rw``, ``Rv``, ``x0_mean``, ``x0_cov`` and ``dof``
-    are shared by all sequences, or carry a leading batch dimension ``B`` (one model per sequence).
+    ``Rw``, ``x0_mean``, ``x0_cov`` and the noise's parameters are shared by all sequences, or
+    carry a leading batch dimension ``B`` (one model per sequence: independent fits, where ``f``
+    and ``g`` are :class:`~torch_nssm.estimation.independent.StackedModule` s).
     """
 
     f: nn.Module
     g: nn.Module
     Rw: Tensor
-    Rv: Tensor
-    dof: Tensor
+    noise: MeasurementNoise
     x0_mean: Tensor
     x0_cov: Tensor
 
@@ -105,14 +107,13 @@ class StateSpaceModel:
         return self.x0_mean.shape[-1]
 
     @property
-    def gaussian(self) -> bool:
-        return bool(torch.isinf(self.dof).all())
+    def Rv(self) -> Tensor:
+        return self.noise.Rv
 
     def per_sequence(self, name: str, n_sequences: int) -> Tensor:
-        """Noise parameter ``name`` expanded to a leading batch dimension of ``n_sequences``."""
+        """``Rw``, ``x0_mean`` or ``x0_cov`` with a leading batch dimension of ``n_sequences``."""
         value = getattr(self, name)
-        core = {"Rw": 2, "Rv": 2, "x0_cov": 2, "x0_mean": 1, "dof": 0}[name]
-        if value.dim() == core:
+        if value.dim() == {"Rw": 2, "x0_cov": 2, "x0_mean": 1}[name]:
             return value.expand(n_sequences, *value.shape)
         return value
 
@@ -124,10 +125,18 @@ class StateSpaceModel:
         """Mean of the next state for the states of several time steps at once: ``x`` ``(t, B, L,
         nx)``, inputs ``(t, B, nu)``.  ``f`` sees the sequence dimension first (``(B, t, L, nx)``),
         as batched per-sequence modules require."""
-        xb = x.transpose(0, 1)
-        ub = u.transpose(0, 1).unsqueeze(-2).expand(*xb.shape[:-1], u.shape[-1])
-        return self.f(xb, ub).transpose(0, 1)
+        return _steps(self.f, x, u)
 
     def observation(self, x: Tensor, u: Tensor) -> Tensor:
         """Mean of the output for states ``(B, L, nx)`` and inputs ``(B, nu)``."""
         return self.g(x, u.unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))
+
+    def observation_steps(self, x: Tensor, u: Tensor) -> Tensor:
+        """:meth:`observation` for several time steps at once, as :meth:`transition_steps`."""
+        return _steps(self.g, x, u)
+
+
+def _steps(module: nn.Module, x: Tensor, u: Tensor) -> Tensor:
+    xb = x.transpose(0, 1)
+    ub = u.transpose(0, 1).unsqueeze(-2).expand(*xb.shape[:-1], u.shape[-1])
+    return module(xb, ub).transpose(0, 1)

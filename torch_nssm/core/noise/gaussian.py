@@ -1,0 +1,51 @@
+"""Gaussian measurement noise ``v ~ N(0, Rv)``: the non-robust baseline (Gopaluni 2008)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .base import MaskedScale, gaussian_log_normaliser, masked_scale
+from .joint import JointScaleNoise, SquaredNormEvaluator
+
+__all__ = ["GaussianNoise"]
+
+
+class _GaussianEvaluator(SquaredNormEvaluator):
+    def step(self, k: int, z: Tensor) -> Tensor:
+        return self.squared_norm(k, z) * -0.5
+
+
+@dataclass(frozen=True)
+class GaussianNoise(JointScaleNoise):
+    """``v ~ N(0, Rv)``: every latent scale is 1, so no sample is down-weighted."""
+
+    name = "gaussian"
+
+    @classmethod
+    def initial(cls, Rv: Tensor, dof: float) -> GaussianNoise:
+        return cls(Rv=Rv)
+
+    def evaluator(self, scale: MaskedScale, n_particles: int) -> _GaussianEvaluator:
+        return _GaussianEvaluator(gaussian_log_normaliser(scale.n_obs, scale.logdet), n_particles)
+
+    def log_prob(self, residual: Tensor) -> Tensor:
+        mask = torch.ones(residual.shape[-1:], dtype=torch.bool, device=residual.device)
+        s = masked_scale(self.Rv, mask)
+        z = residual @ s.chol_inv.transpose(-1, -2)
+        return gaussian_log_normaliser(s.n_obs, s.logdet) - 0.5 * (z * z).sum(-1)
+
+    def latent_expectations(self, statistics, scale, sl):
+        ones = torch.ones((), dtype=statistics.dtype, device=statistics.device)
+        shape = statistics[sl].shape
+        return ones.expand(shape), torch.zeros_like(ones).expand(shape)
+
+    def updated(self, stats, *, fit_Rv, fit_dof, dof_bounds) -> GaussianNoise:
+        return self.replace(Rv=self._updated_scale(stats, fit_Rv))
+
+    def sample(self, shape, generator=None) -> Tensor:
+        chol = torch.linalg.cholesky(self.Rv)
+        z = torch.randn(*shape, chol.shape[-1], dtype=chol.dtype, device=chol.device, generator=generator)
+        return z @ chol.transpose(-1, -2)

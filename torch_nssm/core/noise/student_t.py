@@ -1,0 +1,171 @@
+"""Multivariate Student-t measurement noise ``v ~ St(0, Rv, dof)``, the robust model of the paper.
+
+``v`` is the Gaussian scale mixture ``v | lam ~ N(0, Rv / lam)``, ``lam ~ Gamma(dof/2, rate=dof/2)``:
+one latent scale per sample, whose posterior given a residual with squared Mahalanobis norm
+``delta2`` over ``p`` observed components is ``Gamma((dof + p)/2, rate=(dof + delta2)/2)``; its
+moments weight the M-step (docs/method.md §1, §5).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .base import MaskedScale, masked_scale, standard_gamma
+from .joint import JointScaleNoise, SquaredNormEvaluator
+
+__all__ = [
+    "StudentTNoise",
+    "student_t_log_prob",
+    "latent_scale_expectations",
+    "dof_equation",
+    "solve_dof",
+    "sample_student_t",
+]
+
+
+def student_t_log_prob(delta2: Tensor, logdet: Tensor, n_obs: Tensor, dof: Tensor) -> Tensor:
+    """Log-density of a multivariate Student-t (Gaussian where ``dof`` is infinite).
+
+    ``lgamma((nu+p)/2) - lgamma(nu/2) - p/2 log(nu pi) - 1/2 log det R - (nu+p)/2 log(1 + delta2/nu)``
+    from the squared Mahalanobis norms ``delta2``, ``log det R`` and the number ``p`` of observed
+    components (broadcast together).
+    """
+    dof = torch.as_tensor(dof, dtype=delta2.dtype, device=delta2.device)
+    gauss = -0.5 * (n_obs * math.log(2.0 * math.pi) + logdet + delta2)
+    if torch.isinf(dof).all():
+        return gauss
+    nu = torch.where(torch.isinf(dof), torch.ones_like(dof), dof)
+    half = 0.5 * (nu + n_obs)
+    t = (
+        torch.lgamma(half)
+        - torch.lgamma(0.5 * nu)
+        - 0.5 * n_obs * torch.log(nu * math.pi)
+        - 0.5 * logdet
+        - half * torch.log1p(delta2 / nu)
+    )
+    return torch.where(torch.isinf(dof), gauss, t)
+
+
+def latent_scale_expectations(delta2: Tensor, n_obs: Tensor, dof: Tensor) -> tuple[Tensor, Tensor]:
+    """``<lam> = (nu + p) / (nu + delta2)`` and ``<log lam> = psi((nu+p)/2) - log((nu + delta2)/2)``
+    (paper eqs. 27-28); ``1`` and ``0`` where ``dof`` is infinite."""
+    dof = torch.as_tensor(dof, dtype=delta2.dtype, device=delta2.device)
+    inf = torch.isinf(dof)
+    nu = torch.where(inf, torch.ones_like(dof), dof)
+    denominator = nu + delta2
+    e_lam = (nu + n_obs) / denominator
+    # digamma on the (usually much smaller) broadcast of nu and p only, not per residual
+    e_log = torch.digamma(0.5 * (nu + n_obs)) - torch.log(0.5 * denominator)
+    if not bool(inf.any()):
+        return e_lam, e_log
+    return (
+        torch.where(inf, torch.ones_like(e_lam), e_lam),
+        torch.where(inf, torch.zeros_like(e_log), e_log),
+    )
+
+
+def dof_equation(nu: Tensor, c: Tensor) -> Tensor:
+    """``h(nu) = 1 + log(nu/2) - psi(nu/2) + c`` (paper eq. 38); decreasing in ``nu``."""
+    return 1.0 + torch.log(0.5 * nu) - torch.digamma(0.5 * nu) + c
+
+
+def solve_dof(c: Tensor, dof_min: float = 0.1, dof_max: float = 1000.0, n_bisect: int = 100) -> Tensor:
+    """Root of ``h(nu) = 0`` in ``[dof_min, dof_max]`` (clipped to the bracket), element-wise, float64.
+
+    ``c = mean(<log lam> - <lam>) <= -1`` guarantees a root on ``(0, inf)``.  Bisection on
+    ``log nu`` (100 steps: full float64 precision).
+    """
+    if not 0 < dof_min < dof_max:
+        raise ValueError(f"dof bounds must satisfy 0 < dof_min < dof_max, got ({dof_min}, {dof_max})")
+    c = torch.as_tensor(c, dtype=torch.float64)
+    lo = torch.full_like(c, math.log(dof_min))
+    hi = torch.full_like(c, math.log(dof_max))
+    for _ in range(n_bisect):
+        mid = 0.5 * (lo + hi)
+        positive = dof_equation(torch.exp(mid), c) > 0
+        lo = torch.where(positive, mid, lo)
+        hi = torch.where(positive, hi, mid)
+    return torch.exp(0.5 * (lo + hi))
+
+
+def sample_student_t(
+    shape: tuple[int, ...], chol: Tensor, dof: Tensor | float, generator: torch.Generator | None = None
+) -> Tensor:
+    """Draws ``shape + (p,)`` of ``St(0, chol chol^T, dof)`` (Gaussian for infinite ``dof``)."""
+    p = chol.shape[-1]
+    z = torch.randn(*shape, p, dtype=chol.dtype, device=chol.device, generator=generator)
+    z = z @ chol.transpose(-1, -2)
+    dof = float(dof)
+    if math.isinf(dof):
+        return z
+    conc = torch.full(shape, 0.5 * dof, dtype=chol.dtype, device=chol.device)
+    lam = standard_gamma(conc, generator) / (0.5 * dof)
+    return z / torch.sqrt(lam).unsqueeze(-1)
+
+
+class _StudentTEvaluator(SquaredNormEvaluator):
+    """The filter's fused log-density: ``-(nu + p)/2 log1p(delta2 / nu)`` with the per-``(T, B)``
+    coefficients split into per-step views once per pass."""
+
+    def __init__(self, dof: Tensor, scale: MaskedScale, n_particles: int):
+        const = student_t_log_prob(torch.zeros_like(scale.logdet), scale.logdet, scale.n_obs, dof)
+        super().__init__(const, n_particles)
+        self._neg_coef = (-0.5 * (dof + scale.n_obs)).unsqueeze(-1).unbind(0)  # (B, 1) per step
+        self._inv_nu = (1.0 / dof).expand_as(const).unsqueeze(-1).unbind(0)
+
+    def step(self, k: int, z: Tensor) -> Tensor:
+        delta2 = self.squared_norm(k, z)
+        return torch.log1p_(delta2 * self._inv_nu[k]).mul_(self._neg_coef[k])
+
+
+@dataclass(frozen=True)
+class StudentTNoise(JointScaleNoise):
+    """``v ~ St(0, Rv, dof)``: one latent scale per sample, shared by all output components."""
+
+    dof: Tensor
+
+    name = "student-t"
+    CORE_DIMS = {"Rv": 2, "dof": 0}
+
+    @classmethod
+    def initial(cls, Rv: Tensor, dof: float) -> StudentTNoise:
+        if not 0 < dof < math.inf:
+            raise ValueError(
+                f"dof_init must be positive and finite for Student-t noise, got {dof!r} "
+                "(use noise='gaussian' for the Gaussian limit)"
+            )
+        return cls(Rv=Rv, dof=torch.tensor(float(dof), dtype=Rv.dtype, device=Rv.device))
+
+    def evaluator(self, scale: MaskedScale, n_particles: int) -> _StudentTEvaluator:
+        dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B)
+        return _StudentTEvaluator(dof, scale, n_particles)
+
+    def log_prob(self, residual: Tensor) -> Tensor:
+        mask = torch.ones(residual.shape[-1:], dtype=torch.bool, device=residual.device)
+        s = masked_scale(self.Rv, mask)
+        z = residual @ s.chol_inv.transpose(-1, -2)
+        return student_t_log_prob((z * z).sum(-1), s.logdet, s.n_obs, self.dof)
+
+    def latent_expectations(self, statistics, scale, sl):
+        B = statistics.shape[1]
+        dof = self.per_sequence("dof", B).view(1, B, 1)
+        return latent_scale_expectations(statistics[sl], scale.n_obs[sl].unsqueeze(-1), dof)
+
+    def statistics(self, r, W, e_lam, e_log_lam, scale, sl):
+        stats = super().statistics(r, W, e_lam, e_log_lam, scale, sl)
+        stats["dof_c"] = (W * (e_log_lam - e_lam)).sum((0, 2))
+        return stats
+
+    def updated(self, stats, *, fit_Rv, fit_dof, dof_bounds) -> StudentTNoise:
+        dof = self.dof
+        if fit_dof:
+            c = stats["dof_c"] / stats["n_obs"].clamp_min(1)
+            dof = solve_dof(c, *dof_bounds).to(self.dof).reshape(self.dof.shape)
+        return self.replace(Rv=self._updated_scale(stats, fit_Rv), dof=dof)
+
+    def sample(self, shape, generator=None) -> Tensor:
+        return sample_student_t(shape, torch.linalg.cholesky(self.Rv), self.dof, generator)

@@ -1,0 +1,1 @@
+"""Estimation: the E-step, the M-step and its solvers, the EM loop, independent fits."""

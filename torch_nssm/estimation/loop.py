@@ -1,0 +1,312 @@
+"""The EM loop: one driver for a single fit and for many independent fits.
+
+``run_em(models, data, options)`` iterates E-step and M-step for one or several *groups* of
+sequences: a single fit is one group whose sequences share the parameters (``shared=True``), and
+a Monte Carlo study is one group per sequence (``shared=False``), whose E-steps run as one batch.
+The driver owns what every fit needs: the particle schedule, convergence per group, the rollback
+of an update whose E-step fails, the history of every parameter, Polyak averaging of the last
+iterates and the final E-step, and a clean stop on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections import defaultdict
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+
+from ..core.model import SequenceBatch, StateSpaceModel
+from ..inference.filtering import NumericalError
+from .estep import EStepOptions, EStepOutput, e_step
+from .independent import stack_models
+from .mstep import MStepOptions, m_step
+
+__all__ = ["EMOptions", "EMResult", "run_em", "CONVERGENCE_WINDOW"]
+
+#: Convergence compares the mean log-likelihood estimate of the last CONVERGENCE_WINDOW iterations
+#: with that of the window before: single particle estimates are too noisy to compare.
+CONVERGENCE_WINDOW = 5
+
+
+@dataclass
+class EMOptions:
+    """Settings of the EM loop.
+
+    Attributes
+    ----------
+    n_iter : int
+        Maximum number of EM iterations.
+    tol : float
+        Convergence threshold on the change of the per-observation log-likelihood, averaged over
+        windows of :data:`CONVERGENCE_WINDOW` iterations (0: run all ``n_iter``).
+    n_particles_final : int or None
+        Grow the particle count geometrically from ``estep.n_particles`` to this at ``n_iter``.
+    average_last : int
+        Average the last ``average_last`` iterates (if > 1) before the final E-step.
+    estep, mstep : EStepOptions, MStepOptions
+    progress : str or None
+        Description of a progress bar (``None``: no bar).
+    """
+
+    n_iter: int = 100
+    tol: float = 1e-3
+    n_particles_final: int | None = None
+    average_last: int = 0
+    estep: EStepOptions = field(default_factory=EStepOptions)
+    mstep: MStepOptions = field(default_factory=MStepOptions)
+    progress: str | None = None
+
+    def n_particles(self, iteration: int | None) -> int:
+        """Particle count at EM ``iteration`` (``None``: after fitting)."""
+        L0, L1 = self.estep.n_particles, self.n_particles_final
+        if L1 is None:
+            return L0
+        if iteration is None or self.n_iter == 0:
+            return L1
+        frac = min(iteration, self.n_iter) / self.n_iter
+        return int(round(L0 * (L1 / L0) ** frac))
+
+
+@dataclass
+class EMResult:
+    """The outcome of EM for one group.
+
+    Attributes
+    ----------
+    model : StateSpaceModel
+        The last good parameters (averaged if asked).
+    estep : EStepOutput or None
+        The E-step at ``model`` (``None`` if EM could not start).
+    history : dict of str to list
+        Every parameter and the log-likelihood estimate at every iteration (index 0: the start).
+    n_done : int
+        Completed iterations.
+    converged : bool
+    error : str or None
+        Why EM stopped early (a numerical failure), else ``None``.
+    interrupted : bool
+        Stopped by Ctrl-C (``KeyboardInterrupt``) after ``n_done`` iterations.
+    """
+
+    model: StateSpaceModel
+    estep: EStepOutput | None
+    history: dict
+    n_done: int = 0
+    converged: bool = False
+    error: str | None = None
+    interrupted: bool = False
+
+    @property
+    def log_likelihood(self) -> float:
+        return -math.inf if self.estep is None else float(self.estep.log_likelihood.sum())
+
+
+def record(history: dict, model: StateSpaceModel, log_likelihood: float) -> None:
+    """Append the model's parameters and the log-likelihood estimate to ``history``."""
+    history["log_likelihood"].append(log_likelihood)
+    for label, module in (("f", model.f), ("g", model.g)):
+        for name, p in module.named_parameters():
+            history[f"{label}.{name}"].append(p.detach().cpu().numpy().copy())
+    history["Rw"].append(model.Rw.detach().cpu().numpy())
+    for name, value in model.noise.parameters().items():
+        history[name].append(value.detach().cpu().numpy() if value.dim() else float(value))
+    history["x0_mean"].append(model.x0_mean.detach().cpu().numpy())
+
+
+def averaged(model: StateSpaceModel, history: dict, k: int) -> StateSpaceModel:
+    """The model at the average of the last ``k`` recorded iterates (parameters and noise)."""
+    for label, module in (("f", model.f), ("g", model.g)):
+        with torch.no_grad():
+            for name, p in module.named_parameters():
+                if p.requires_grad:
+                    p.copy_(torch.as_tensor(np.mean(history[f"{label}.{name}"][-k:], axis=0)))
+    mean = lambda key, like: torch.as_tensor(np.mean(history[key][-k:], axis=0)).to(like)  # noqa: E731
+    noise = model.noise.replace(**{n: mean(n, v) for n, v in model.noise.parameters().items()})
+    return replace(model, Rw=mean("Rw", model.Rw), noise=noise, x0_mean=mean("x0_mean", model.x0_mean))
+
+
+def converged(lls: list[float], n_obs: int, tol: float) -> bool:
+    """Whether the windowed mean log-likelihood changed by less than ``tol`` per observation."""
+    w = CONVERGENCE_WINDOW
+    if tol <= 0 or len(lls) < 2 * w:
+        return False
+    recent, before = np.mean(lls[-w:]), np.mean(lls[-2 * w : -w])
+    return abs(recent - before) / max(n_obs, 1) < tol
+
+
+class _Batch:
+    """The active groups' models and data as one batch, and the group of each position."""
+
+    def __init__(self, groups: list[int], models: list[StateSpaceModel], data: SequenceBatch, shared: bool):
+        self.groups = groups
+        self.shared = shared
+        if shared:
+            self.model, self.data = models[0], data
+        else:
+            idx = torch.tensor(groups, device=data.y.device)
+            self.model = stack_models([models[g] for g in groups])
+            self.data = data if len(groups) == data.n_sequences else data.select(idx)
+
+
+def _snapshot(model: StateSpaceModel):
+    return model, copy.deepcopy(model.f.state_dict()), copy.deepcopy(model.g.state_dict())
+
+
+def _restore(snapshot) -> StateSpaceModel:
+    model, f_state, g_state = snapshot
+    model.f.load_state_dict(f_state)
+    model.g.load_state_dict(g_state)
+    return model
+
+
+def run_em(
+    models: list[StateSpaceModel],
+    data: SequenceBatch,
+    options: EMOptions,
+    generator: torch.Generator | None = None,
+    *,
+    shared: bool = True,
+) -> list[EMResult]:
+    """Run EM from ``models`` until convergence, ``n_iter`` iterations, an error or Ctrl-C.
+
+    Parameters
+    ----------
+    models : list of StateSpaceModel
+        The starting model of each group: one (``shared=True``: all sequences of ``data`` share
+        it) or one per sequence (independent fits, E-steps batched).  Their modules are updated
+        in place.
+    data : SequenceBatch
+    options : EMOptions
+    generator : torch.Generator, optional
+        The particle methods' random numbers.
+
+    Returns
+    -------
+    list of EMResult
+        One per group; a group stopped by an error or an interrupt keeps its last good model.
+    """
+    n_groups = len(models)
+    models = list(models)
+    histories = [defaultdict(list) for _ in range(n_groups)]
+    lls: list[list[float]] = [[] for _ in range(n_groups)]
+    n_done = [0] * n_groups
+    done = [False] * n_groups
+    errors: list[str | None] = [None] * n_groups
+    last: list[tuple[EStepOutput, int] | None] = [None] * n_groups
+    observed = data.obs_mask.any(-1).sum(0).tolist()
+    n_obs = [sum(observed)] if shared else observed
+    interrupted = False
+
+    def estep(groups: list[int], iteration: int | None) -> _Batch:
+        batch = _Batch(groups, models, data, shared)
+        est_options = replace(options.estep, n_particles=options.n_particles(iteration))
+        est = e_step(batch.model, batch.data, est_options, generator)
+        for j, g in enumerate(groups):
+            last[g] = (est, j)
+        return batch
+
+    active = list(range(n_groups))
+    snapshots: dict[int, tuple] = {}
+    bar = _progress_bar(options.n_iter, options.progress)
+    try:
+        try:
+            batch = estep(active, 0)
+        except (NumericalError, torch.linalg.LinAlgError) as exc:
+            for g in active:
+                errors[g] = f"EM could not start: the E-step failed at the initial parameters: {exc}"
+            active = []
+        for it in range(options.n_iter + 1):
+            if not active:
+                break
+            est = last[active[0]][0]
+            batch_lls = est.log_likelihood.tolist()
+            update = []
+            for j, g in enumerate(active):
+                ll = sum(batch_lls) if shared else batch_lls[j]
+                record(histories[g], models[g], ll)
+                lls[g].append(ll)
+                if converged(lls[g], n_obs[g], options.tol):
+                    done[g] = True
+                elif it < options.n_iter:
+                    update.append(j)
+            if not update:
+                break
+            snapshots = {active[j]: _snapshot(models[active[j]]) for j in update}
+            ids = [active[j] for j in update]
+            if len(update) == len(active):  # the usual case: no copy of the E-step output
+                sub_data, sub_est = batch.data, est
+            else:
+                sel = torch.tensor(update, device=data.y.device)
+                sub_data, sub_est = batch.data.select(sel), est.select(sel)
+            result = m_step([models[g] for g in ids], sub_data, sub_est, options.mstep, shared=shared)
+            still = []
+            for g, new, error in zip(ids, result.models, result.errors):
+                if error is not None:
+                    errors[g] = f"EM stopped at iteration {it + 1}: {error}"
+                    continue
+                models[g] = new
+                still.append(g)
+            if still:
+                try:
+                    batch = estep(still, it + 1)
+                except (NumericalError, torch.linalg.LinAlgError) as exc:
+                    for g in still:
+                        models[g] = _restore(snapshots[g])
+                        errors[g] = f"EM stopped at iteration {it + 1}: {exc}"
+                    still = []
+            for g in still:
+                n_done[g] += 1
+            active = still
+            bar.update(1)
+            if shared and active:
+                ll = float(last[0][0].log_likelihood.sum())
+                bar.set_postfix(loglik=f"{ll / max(n_obs[0], 1):.4f}/obs")
+    except KeyboardInterrupt:
+        # Ctrl-C: every group keeps its last completed iteration (an interrupted M-step is undone)
+        interrupted = True
+        for g in range(n_groups):
+            if g in snapshots and n_done[g] < len(lls[g]):
+                models[g] = _restore(snapshots[g])
+    finally:
+        bar.close()
+    if not interrupted:
+        _finish(models, histories, n_done, errors, last, options, estep)
+    results = []
+    for g in range(n_groups):
+        est = None
+        if last[g] is not None:
+            batch_est, j = last[g]
+            est = batch_est if shared else batch_est.select(slice(j, j + 1))
+        history = dict(histories[g])
+        results.append(EMResult(models[g], est, history, n_done[g], done[g], errors[g], interrupted))
+    return results
+
+
+def _finish(models, histories, n_done, errors, last, options: EMOptions, estep) -> None:
+    """Average the last iterates and/or run the final E-step at the final particle count."""
+    K = options.average_last
+    final = [
+        g
+        for g in range(len(models))
+        if errors[g] is None and ((K > 1 and n_done[g] >= K) or (options.n_particles_final and n_done[g]))
+    ]
+    if not final:
+        return
+    for g in final:
+        if K > 1 and n_done[g] >= K:
+            models[g] = averaged(models[g], histories[g], K)
+    estep(final, None)
+
+
+def _progress_bar(total: int, desc: str | None):
+    """A tqdm bar (a notebook widget where available); imported only when shown."""
+    from tqdm import tqdm
+
+    if desc is None:
+        return tqdm(total=total, disable=True)
+    from tqdm.auto import tqdm as auto_tqdm  # warns in kernels without ipywidgets: only if asked
+
+    return auto_tqdm(total=total, desc=desc, leave=True)

@@ -1,0 +1,425 @@
+"""The M-step of the robust EM algorithm (paper eqs. 31-38; docs/method.md §4-5, §7).
+
+The smoother's sufficient statistics turn each update into a weighted regression with ``N * L``
+rows per sequence (never ``N * L^2``), in ECM order:
+
+* ``theta_f``: inputs ``(x_k^i, u_k)``, target ``xbar_k^i``, weight ``s_k^i``, metric ``Rw_old^-1``;
+  then ``Rw`` in closed form with the parameter-free scatter kept;
+* ``theta_g``: inputs ``(x_k^l, u_k)``, target ``y_k``, weight ``W_{k|N}^l`` times the noise model's
+  latent scales, metric ``Rv_old^-1`` on the observed components; then the noise model's own
+  closed-form update (``Rv``, degrees of freedom);
+* the initial state's mean and covariance from the smoothed first state.
+
+Everything is computed per sequence from time-major ``(T, B, L, ...)`` arrays, block by block,
+and *pooled* over the sequences that share parameters: all of them in a single fit (one group),
+none in independent fits (one group per sequence).  Modules linear in their parameters
+(:class:`~torch_nssm.core.parametric.LinearInParameters`) get the closed-form weighted least
+squares, batched over groups; any other module gets a gradient solver
+(:mod:`torch_nssm.estimation.solvers`) on its group's flattened rows.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass, field, replace
+from typing import Callable
+
+import torch
+from torch import Tensor, nn
+
+from .._ops import linear_combination, time_blocks
+from ..core.model import SequenceBatch, StateSpaceModel
+from ..core.noise import MeasurementNoise, symmetric_pd
+from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
+from .estep import EStepOutput
+from .independent import StackedModule
+from .solvers import RegressionRows, SolverReport, SolverSettings, fit_weighted_regression
+
+__all__ = [
+    "MStepOptions",
+    "MStepResult",
+    "m_step",
+    "Regression",
+    "transition_regression",
+    "observation_regression",
+    "smoothing_weights",
+    "process_noise_update",
+    "noise_statistics",
+    "initial_state_update",
+    "ROW_WEIGHT_CUTOFF",
+]
+
+#: Rows whose smoothing weight is below this (weights sum to one at each time step) do not enter
+#: the gradient solvers' regressions: they change the objective by less than a part in 1e12.
+ROW_WEIGHT_CUTOFF = 1e-12
+
+
+@dataclass
+class MStepOptions:
+    """Settings of the M-step.
+
+    Attributes
+    ----------
+    optimizer : str
+        Gradient solver (:data:`~torch_nssm.estimation.solvers.SOLVERS`) for modules without a
+        closed form.
+    solver : SolverSettings
+        Its iterations, step size, minibatches.
+    fit_Rw, fit_Rv, fit_dof, fit_x0 : bool
+        Which noise parameters and the initial-state prior are updated.
+    dof_bounds : (float, float)
+        Bracket of the degrees-of-freedom root-solve.
+    """
+
+    optimizer: str = "lbfgs"
+    solver: SolverSettings = field(default_factory=SolverSettings)
+    fit_dof: bool = True
+    dof_bounds: tuple[float, float] = (0.1, 1000.0)
+    fit_x0: bool = True
+    fit_Rw: bool = True
+    fit_Rv: bool = True
+
+
+@dataclass
+class MStepResult:
+    """The updated model of each group, and per group the reason its update was refused (``None``
+    where it is valid; a refused group keeps its previous model) and the modules' solver reports."""
+
+    models: list[StateSpaceModel]
+    errors: list[str | None]
+    reports: list[dict[str, SolverReport]]
+
+
+@dataclass
+class Regression:
+    """One weighted regression of the M-step, time-major over ``T'`` steps and ``B`` sequences.
+
+    Attributes
+    ----------
+    x : Tensor, shape (T', B, L, nx)
+    u : Tensor, shape (T', B, nu)
+    target : Tensor, shape (T', B, L or 1, d)
+        Zero where a component is missing.
+    row_weight : callable
+        ``row_weight(sl)``: weights ``(t, B, L)`` of the rows of time block ``sl``.
+    component_weight : callable or None
+        ``component_weight(sl)``: extra weights ``(t, B, L, d)`` per whitened component.
+    whitener : Tensor, shape (T' or 1, B, d, d)
+        ``C`` with metric ``C^T C`` (zero columns at missing components).
+    """
+
+    x: Tensor
+    u: Tensor
+    target: Tensor
+    row_weight: Callable[[slice], Tensor]
+    whitener: Tensor
+    component_weight: Callable[[slice], Tensor] | None = None
+
+    def blocks(self):
+        T, B, L = self.x.shape[:3]
+        return time_blocks(T, B * L)
+
+    def weight(self, sl: slice) -> Tensor:
+        """Weights of the whitened components: ``(t, B, L)`` (the same for every component) or
+        ``(t, B, L, d)``."""
+        w = self.row_weight(sl)
+        return w if self.component_weight is None else w.unsqueeze(-1) * self.component_weight(sl)
+
+    def whitener_at(self, sl: slice) -> Tensor:
+        return self.whitener if self.whitener.shape[0] == 1 else self.whitener[sl]
+
+    def rows(self, sequences: slice) -> RegressionRows:
+        """The flattened rows of ``sequences`` whose weight exceeds :data:`ROW_WEIGHT_CUTOFF`."""
+        sl = slice(None)
+        w = self.row_weight(sl)[:, sequences]
+        keep = w > ROW_WEIGHT_CUTOFF
+        T, B, L = keep.shape
+        C = self.whitener_at(sl)[:, sequences].expand(T, B, *self.whitener.shape[-2:])
+        if self.component_weight is None:
+            P = C.transpose(-1, -2) @ C
+        else:  # C^T diag(component weight) C per row
+            cw = self.component_weight(sl)[:, sequences][keep]  # (n, d)
+            Ck = C.unsqueeze(2).expand(T, B, L, *C.shape[-2:])[keep]
+            P = Ck.transpose(-1, -2) @ (cw.unsqueeze(-1) * Ck)
+        if self.component_weight is None:
+            if bool((P == P[:1, :1]).all()):
+                P = P[0, 0]
+            else:
+                P = P.unsqueeze(2).expand(T, B, L, *P.shape[-2:])[keep]
+        x = self.x[:, sequences][keep]
+        target = self.target[:, sequences].expand(T, B, L, self.target.shape[-1])[keep]
+        u = self.u[:, sequences].unsqueeze(2).expand(T, B, L, self.u.shape[-1])[keep]
+        return RegressionRows(x, u, target, w[keep], P)
+
+
+# ---------------------------------------------------------------------- evaluation per group
+class _Groups:
+    """Which sequences share parameters: all (``shared``: one group) or none (one per sequence)."""
+
+    def __init__(self, shared: bool, n_sequences: int):
+        self.shared = shared
+        self.n_sequences = n_sequences
+        self.n = 1 if shared else n_sequences
+
+    def pool(self, per_sequence: Tensor) -> Tensor:
+        """Sum a per-sequence statistic ``(B, ...)`` over each group: ``(...)`` if shared, else as is."""
+        return per_sequence.sum(0) if self.shared else per_sequence
+
+    def sequences(self, group: int) -> slice:
+        return slice(None) if self.shared else slice(group, group + 1)
+
+    def per_sequence(self, per_group: Tensor) -> Tensor:
+        """A per-group value ``(G, ...)`` repeated for each sequence ``(B, ...)``."""
+        return per_group.expand(self.n_sequences, *per_group.shape[1:]) if self.shared else per_group
+
+
+def _is_linear(modules: list[nn.Module]) -> bool:
+    return all(isinstance(m, LinearInParameters) for m in modules)
+
+
+def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, Tensor], Tensor]:
+    """``(x (t, B, L, nx), u (t, B, nu)) -> (t, B, L, d)`` with each sequence's group's module."""
+    if _is_linear(modules) and not groups.shared:
+        template = modules[0]
+        thetas = torch.stack([m.theta().detach() for m in modules])  # (B, P)
+
+        def linear(x: Tensor, u: Tensor) -> Tensor:
+            Phi, offset = template.features(x, u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1]))
+            return offset + linear_combination(Phi, thetas.view(1, thetas.shape[0], 1, 1, -1))
+
+        return linear
+    if groups.shared:
+        module = modules[0]
+        return lambda x, u: module(x, u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1]))
+    stacked = StackedModule(modules)
+
+    def per_set(x: Tensor, u: Tensor) -> Tensor:
+        xb = x.transpose(0, 1)
+        return stacked(xb, u.transpose(0, 1).unsqueeze(2).expand(*xb.shape[:-1], u.shape[-1])).transpose(0, 1)
+
+    return per_set
+
+
+# ---------------------------------------------------------------------- regressions
+def _closed_form(modules: list[LinearInParameters], problem: Regression, groups: _Groups) -> None:
+    """Set each group's module to its weighted least-squares solution (non-finite: unchanged)."""
+    template = modules[0]
+    free = template.free_mask()
+    if not bool(free.any()):
+        return
+    thetas = torch.stack([m.theta().detach() for m in modules])  # (G, P)
+    G, h = linear_normal_equations(
+        template, groups.per_sequence(thetas), problem.x, problem.u, problem.target, problem.weight,
+        problem.whitener,
+    )
+    G, h = groups.pool(G), groups.pool(h)
+    sol = solve_normal_equations(G, h).reshape(groups.n, -1)
+    for module, theta, s in zip(modules, thetas, sol):
+        if bool(torch.isfinite(s).all()):
+            new = theta.clone()
+            new[free] = s
+            module.set_theta(new)
+
+
+def _update_modules(
+    modules: list[nn.Module], problem: Regression, groups: _Groups, options: MStepOptions
+) -> list[SolverReport | None]:
+    if _is_linear(modules):
+        _closed_form(modules, problem, groups)
+        return [None] * len(modules)
+    return [
+        fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, options.solver)
+        for g, m in enumerate(modules)
+    ]
+
+
+def _residuals(predict, problem: Regression, mask: Tensor | None = None):
+    """Residuals ``target - predict(x, u)`` block by block (zero at missing components)."""
+    for sl in problem.blocks():
+        r = problem.target[sl] - predict(problem.x[sl], problem.u[sl])
+        if mask is not None:
+            r = torch.where(mask[sl].unsqueeze(2), r, torch.zeros_like(r))
+        yield sl, r
+
+
+def _inverse_cholesky(S: Tensor) -> Tensor:
+    """``C`` with ``C^T C = S^-1`` (the inverse of the lower Cholesky factor)."""
+    chol = torch.linalg.cholesky(S)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device).expand_as(chol)
+    return torch.linalg.solve_triangular(chol, eye, upper=False)
+
+
+# ---------------------------------------------------------------------- the updates
+def _stack(values: list[Tensor], groups: _Groups) -> Tensor:
+    return values[0] if groups.shared else torch.stack(values)
+
+
+def transition_regression(Rw: Tensor, data: SequenceBatch, est: EStepOutput) -> Regression:
+    """The ``theta_f`` regression: ``(x_k^i, u_k) -> xbar_k^i``, weight ``s_k^i``, metric ``Rw^-1``
+    (``Rw`` shared ``(nx, nx)`` or per sequence ``(B, nx, nx)``)."""
+    B = data.n_sequences
+    Rw = Rw.expand(B, *Rw.shape[-2:]) if Rw.dim() == 2 else Rw
+    sm = est.smoother
+    Cw = _inverse_cholesky(Rw).unsqueeze(0)  # (1, B, nx, nx)
+    X = est.filter.particles
+    return Regression(X[:-1], data.u[:-1], sm.next_mean, lambda sl: sm.transition_weights[sl], Cw)
+
+
+def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice], Tensor]:
+    """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed."""
+    observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
+    return lambda sl: torch.exp(est.smoother.log_weights[sl]) * observed[sl]
+
+
+def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:
+    """The ``theta_g`` regression: ``(x_k^l, u_k) -> y_k``, weight ``W_{k|N}^l`` times the latent
+    scales (per component where the noise has one scale per component), metric ``Rv^-1`` on the
+    observed components."""
+    W = smoothing_weights(data, est)
+    scale = est.filter.scale
+    y = scale.fill_missing(data.y).unsqueeze(2)  # (T, B, 1, p)
+    X, e_lam = est.filter.particles, est.e_lam
+    if e_lam.dim() == 4:  # one latent scale per component
+        return Regression(X, data.u, y, W, scale.whitener(), lambda sl: e_lam[sl])
+    return Regression(X, data.u, y, lambda sl: W(sl) * e_lam[sl], scale.whitener())
+
+
+@torch.no_grad()
+def process_noise_update(
+    f: list[nn.Module], regression: Regression, est: EStepOutput, data: SequenceBatch, *, shared: bool = True
+) -> Tensor:
+    """Closed-form ``Rw`` (eq. 31, docs/method.md §7) at the current ``theta_f`` of each group:
+    the weighted scatter of the regression's residuals plus the parameter-free scatter, over the
+    number of transitions."""
+    groups = _Groups(shared, data.n_sequences)
+    S = est.smoother.residual_scatter.clone()  # (B, nx, nx)
+    predict = _evaluator(f, groups)
+    for sl, r in _residuals(predict, regression):
+        rw = r * regression.row_weight(sl).unsqueeze(-1)
+        S += (rw.transpose(-1, -2) @ r).sum(0)
+    n = groups.pool(data.transition_mask.sum(0).to(S.dtype)).clamp_min(1)
+    return symmetric_pd(groups.pool(S) / n[..., None, None], 1e-10)
+
+
+@torch.no_grad()
+def noise_statistics(
+    noise: MeasurementNoise, g: list[nn.Module], data: SequenceBatch, est: EStepOutput, *, shared: bool = True
+) -> dict[str, Tensor]:
+    """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
+    groups = _Groups(shared, data.n_sequences)
+    scale = est.filter.scale
+    regression = observation_regression(data, est)
+    W = smoothing_weights(data, est)
+    predict = _evaluator(g, groups)
+    stats: dict[str, Tensor] = {}
+    for sl, r in _residuals(predict, regression, mask=scale.mask):
+        block = noise.statistics(r, W(sl), est.e_lam[sl], est.e_log_lam[sl], scale, sl)
+        for k, v in block.items():
+            stats[k] = stats[k] + v if k in stats else v
+    return {k: groups.pool(v) for k, v in stats.items()}
+
+
+@torch.no_grad()
+def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -> tuple[Tensor, Tensor]:
+    """Prior of the first state from its smoothed distribution, pooled over each group's sequences.
+
+    ``Rw`` is *added* to the smoothed covariance: with a single record the maximum-likelihood prior
+    would otherwise collapse to a point over the iterations.
+    """
+    X0 = est.filter.particles[0]  # (B, L, nx)
+    B = X0.shape[0]
+    groups = _Groups(shared, B)
+    w0 = torch.exp(est.smoother.log_weights[0]).unsqueeze(-1)  # (B, L, 1)
+    count = groups.pool(torch.ones(B, dtype=X0.dtype, device=X0.device))
+    mean = groups.pool((w0 * X0).sum(1)) / count[..., None]
+    d = X0 - groups.per_sequence(mean.reshape(groups.n, -1)).unsqueeze(1)
+    cov = groups.pool((w0 * d).transpose(-1, -2) @ d) / count[..., None, None]
+    return mean, symmetric_pd(cov + Rw)
+
+
+def m_step(
+    models: list[StateSpaceModel],
+    data: SequenceBatch,
+    est: EStepOutput,
+    options: MStepOptions,
+    *,
+    shared: bool = True,
+) -> MStepResult:
+    """Update every parameter of each group from the E-step statistics (ECM: f, Rw, g, noise, x0).
+
+    Parameters
+    ----------
+    models : list of StateSpaceModel
+        One model per group: ``[model]`` for a fit whose ``B`` sequences share parameters
+        (``shared=True``), one per sequence for independent fits.  The modules are updated in
+        place; a group whose update is refused gets its previous parameters back.
+    data : SequenceBatch
+    est : EStepOutput
+        The E-step of ``data`` at these models (stacked for independent fits).
+    options : MStepOptions
+
+    Returns
+    -------
+    MStepResult
+    """
+    groups = _Groups(shared, data.n_sequences)
+    if len(models) != groups.n:
+        raise ValueError(f"expected {groups.n} models for {data.n_sequences} sequences, got {len(models)}")
+    backups = [(copy.deepcopy(m.f.state_dict()), copy.deepcopy(m.g.state_dict())) for m in models]
+    fs, gs = [m.f for m in models], [m.g for m in models]
+    Rw_old = _stack([m.Rw for m in models], groups)
+    noise_old = models[0].noise if shared else type(models[0].noise).stack([m.noise for m in models])
+
+    trans = transition_regression(Rw_old, data, est)
+    reports_f = _update_modules(fs, trans, groups, options)
+    Rw = process_noise_update(fs, trans, est, data, shared=shared) if options.fit_Rw else Rw_old
+
+    reports_g = _update_modules(gs, observation_regression(data, est), groups, options)
+    noise = noise_old.updated(
+        noise_statistics(noise_old, gs, data, est, shared=shared),
+        fit_Rv=options.fit_Rv,
+        fit_dof=options.fit_dof,
+        dof_bounds=options.dof_bounds,
+    )
+    if options.fit_x0:
+        x0_mean, x0_cov = initial_state_update(est, Rw, shared=shared)
+    else:
+        x0_mean = _stack([m.x0_mean for m in models], groups)
+        x0_cov = _stack([m.x0_cov for m in models], groups)
+
+    noises = [noise] if shared else noise.unstack()
+    per_group = (lambda v: [v]) if shared else (lambda v: list(v.unbind(0)))
+    new_models, errors, reports = [], [], []
+    for g, (model, Rw_g, noise_g, m0, c0) in enumerate(
+        zip(models, per_group(Rw), noises, per_group(x0_mean), per_group(x0_cov))
+    ):
+        candidate = replace(model, Rw=Rw_g, noise=noise_g, x0_mean=m0, x0_cov=c0)
+        error = _check(candidate)
+        reports.append({k: r for k, r in (("f", reports_f[g]), ("g", reports_g[g])) if r is not None})
+        if error is not None:
+            model.f.load_state_dict(backups[g][0])
+            model.g.load_state_dict(backups[g][1])
+            candidate = model
+        new_models.append(candidate)
+        errors.append(error)
+    return MStepResult(new_models, errors, reports)
+
+
+def _check(model: StateSpaceModel) -> str | None:
+    """Why ``model`` is not a valid M-step result (``None`` if it is)."""
+    for name in ("Rw", "x0_mean", "x0_cov"):
+        if not bool(torch.isfinite(getattr(model, name)).all()):
+            return f"the M-step produced a non-finite {name}"
+    for label, module in (("f", model.f), ("g", model.g)):
+        for pname, p in module.named_parameters():
+            if not bool(torch.isfinite(p).all()):
+                return f"the M-step produced a non-finite parameter {label}.{pname}"
+    if not bool(model.noise.is_valid().all()):
+        return "the M-step produced a non-finite or non-positive-definite measurement noise (Rv)"
+    for name in ("Rw", "x0_cov"):
+        if int(torch.linalg.cholesky_ex(getattr(model, name)).info.max()) != 0:
+            return (
+                f"the M-step produced a {name} that is not positive definite "
+                "(the model diverged: try other initial values)"
+            )
+    return None

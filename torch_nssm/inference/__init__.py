@@ -1,0 +1,1 @@
+"""Inference at fixed parameters: resampling, the particle filter, smoothers, prediction."""
