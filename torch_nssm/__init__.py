@@ -5,7 +5,7 @@
 (robust to outliers) by EM with a particle smoother (Liu & Yang, Neurocomputing 2019).
 """
 
-from . import datasets, models, neural, plotting, silverbox, warm_start
+from . import datasets, models, neural, plotting, warm_start
 from .batch import fit_independent
 from .estimator import RobustNSSMEstimator
 from .filtering import NumericalError
@@ -25,6 +25,5 @@ __all__ = [
     "neural",
     "plotting",
     "warm_start",
-    "silverbox",
 ]
 __version__ = "0.1.0"
