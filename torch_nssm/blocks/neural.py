@@ -1,27 +1,18 @@
 """Neural ``f`` / ``g`` blocks: MLP transition and observation models, and a grey-box transition.
 
-Every block is a plain ``torch.nn.Module`` called as ``f(x, u)`` / ``g(x, u)`` with ``x`` of shape
-``(..., nx)`` and ``u`` of shape ``(..., nu)`` (leading dimensions broadcast; ``nu = 0`` for a
-system without input), so it plugs straight into :class:`~torch_nssm.RobustNSSMEstimator` (whose
-M-step fits it by LBFGS or Adam on the weighted regression rows, :mod:`torch_nssm.mstep`).
+Every block is a ``torch.nn.Module`` called as ``f(x, u)`` / ``g(x, u)`` with ``x`` of shape
+``(..., nx)`` and ``u`` of shape ``(..., nu)`` (``nu = 0``: no input), fitted by the estimator's
+gradient M-step.
 
-* :class:`MLPTransition`: ``f(x, u) = x + out_scale * MLP([x_norm, u_norm])``, residual form with
-  a small last layer, so the untrained model is (within about ``1e-3 * out_scale``) the identity
-  ``x_{k+1} = x_k``: a neutral, stable start for EM.
+* :class:`MLPTransition`: ``f(x, u) = x + out_scale * MLP([x_norm, u_norm])``, close to the
+  identity when untrained.
 * :class:`MLPObservation`: ``g(x, u) = y_mean + y_scale * MLP([x_norm, u_norm])``.
 * :class:`GreyBoxTransition`: ``f(x, u) = physical(x, u) + out_scale * MLP([x_norm, u_norm])``,
-  whose correction starts at exactly zero, so the untrained model *is* the physical model.
+  exactly ``physical`` when untrained.
 
-Inputs are normalised as ``x_norm = (x - x_mean) / x_scale`` and ``u_norm = (u - u_mean) /
-u_scale``.  The means and scales (and the output scales) are *buffers*: they travel with the
-model (``state_dict``, pickle, ``.to()``) but are not estimated.  Set them in the constructor or
-from data with ``fit_normalisation`` **before** fitting (changing them afterwards changes the
-function the network represents).  The state is latent, so its statistics are a guess: the
-simulated states of a first-principles model, or the outputs' statistics when ``g`` is close to
-the identity, are good choices; the default (mean 0, scale 1) suits states of order one.
-
-All blocks default to ``float64`` (the estimator's default dtype); ``random_state`` makes the
-weight initialisation reproducible without touching torch's global random state.
+``x_norm = (x - x_mean) / x_scale`` and likewise ``u_norm``; the means and scales are buffers
+(saved and moved with the module, not estimated): set them in the constructor or with
+``fit_normalisation`` before fitting.  Design notes: ``docs/design.md`` ("Neural blocks").
 """
 
 from __future__ import annotations
@@ -198,13 +189,10 @@ class _NeuralBlock(nn.Module):
 class MLPTransition(_NeuralBlock):
     """Residual MLP transition ``f(x, u) = x + out_scale * MLP([x_norm, u_norm])``.
 
-    ``x_norm = (x - x_mean) / x_scale`` and ``u_norm = (u - u_mean) / u_scale``.  The network's
-    last layer starts small (weights of standard deviation ``last_layer_scale / sqrt(width)``, zero
-    bias), so the untrained model is close to the identity ``f(x, u) = x``: with tanh hidden units
-    and the default ``last_layer_scale = 1e-3``, ``|f(x, u) - x|`` is of order ``1e-3 *
-    out_scale``.  EM therefore starts from a random-walk model, which is stable and lets the
-    first E-steps follow the data.  The network learns the *increment* ``x_{k+1} - x_k`` in units
-    of ``out_scale``.
+    The last layer starts small (weights of s.d. ``last_layer_scale / sqrt(width)``, zero bias),
+    so the untrained model is within about ``last_layer_scale * out_scale`` of ``f(x, u) = x``:
+    EM starts from a stable random walk.  The network learns the increment in units of
+    ``out_scale``.
 
     Parameters
     ----------

@@ -1,30 +1,10 @@
 """Warm starts for neural and grey-box models: fit a fast model first, start the network from it.
 
-A neural transition starts far from anything: :class:`~torch_nssm.neural.MLPTransition` starts at
-the random walk ``x_{k+1} = x_k``, and the first E-steps of EM then smooth the states of a random
-walk, so the first M-steps teach the network little and the noise levels settle at values that
-explain the data by noise instead of dynamics.  The paper itself notes the method's sensitivity
-to initial values.  :func:`warm_start_estimator` therefore runs three cheap stages before the real fit:
-
-1. **A reference model is fitted by EM**: by default a *linear* state-space model
-   (:class:`LinearTransition`, linear in its parameters, so every M-step is a closed-form
-   weighted least-squares solve: a few seconds), with the user's ``g`` when that is cheap to fit
-   (a :class:`~torch_nssm.LinearInParameters` module or one without free parameters), or a
-   :class:`LinearObservation` in place of an :class:`~torch_nssm.neural.MLPObservation`.  A
-   :class:`~torch_nssm.neural.GreyBoxTransition`'s own physical model is the reference of its
-   transition.
-2. **The states are smoothed** with the fitted reference: the smoothed means (with jittered
-   copies, as wide as the smoothed spread plus the process noise) are the states where the
-   network must be right; they set the network's normalisation buffers (``fit_normalisation``).
-3. **The network imitates the reference** (:func:`distill`): its weights are trained by LBFGS so
-   that ``f(x, u)`` matches the reference ``f`` on those states (the residual MLP learns the
-   linear model's increment).  A grey-box transition instead takes the fitted physical
-   parameters, with its correction still exactly zero.
-
-The returned estimator is a clone of the user's with these modules as ``f`` and ``g`` and the
-reference's noise levels and initial-state prior as ``Rw_init``, ``Rv_init``, ``dof_init``,
-``x0_mean``, ``x0_cov``: its :meth:`~torch_nssm.RobustNSSMEstimator.fit` starts where the
-reference ended and improves on it.
+:func:`warm_start_estimator` fits a reference model by EM (by default a
+:class:`~torch_nssm.blocks.linear.LinearTransition`: closed-form M-steps), smooths the states with
+it, sets the networks' normalisation from those states and trains the networks to imitate the
+reference (:func:`distill`).  The result is an unfitted clone of the user's estimator that starts
+where the reference ended.  Why and how: ``docs/design.md`` ("Warm starts").
 
 Example
 -------
@@ -291,8 +271,7 @@ def warm_start_estimator(
 
     Fits a reference model by EM (a linear transition by default: closed-form M-steps, fast),
     smooths the states with it, sets the neural modules' normalisation from the smoothed
-    states and trains them to imitate the reference (module docstring: :mod:`torch_nssm.warm_start`).
-    Call ``.fit(u, y)`` on the result.
+    states and trains them to imitate the reference.  Call ``.fit(u, y)`` on the result.
 
     Parameters
     ----------
@@ -347,13 +326,8 @@ def warm_start_estimator(
 
     Notes
     -----
-    The reference fit runs with LBFGS M-steps and no particle growth, averaging or restarts.
-    Keep ``n_init=1`` for the fit after a warm start: restarts multiply every network weight by
-    a random factor (``init_jitter``), which throws the warm start away.
-    On the paper's Section 4.1 data (N = 300, 10 % outliers) a residual MLP fitted for 8 EM
-    iterations after this warm start reaches a free-run correlation with the clean outputs close
-    to the true model's, where the same fit from the default (identity) start stays far below
-    (``tests/test_warm_start.py`` measures it).
+    Keep ``n_init=1`` for the fit after a warm start: restarts jitter every network weight
+    (``init_jitter``), which throws the warm start away.
     """
     t0 = time.perf_counter()
     if not isinstance(estimator, RobustNSSMEstimator):
