@@ -57,10 +57,10 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
     u, y = data["u"], data["y"]
     if impl in OURS:
         import torch
-        from torch_nssm.estimation.estep import MStepOptions, e_step, m_step
-        from torch_nssm.core.model import SequenceBatch, StateSpaceModel
-        from torch_nssm.inference.smoothing import smoothed_moments
 
+        from torch_nssm.core.model import SequenceBatch, StateSpaceModel
+        from torch_nssm.estimation.estep import MStepOptions, e_step, m_step
+        from torch_nssm.inference.smoothing import smoothed_moments
         from torch_nssm.models import PaperObservation, PaperTransition
 
         torch.set_num_threads(threads)

@@ -1,9 +1,8 @@
-"""Tests of the simulated data sets and the Silverbox loader."""
+"""Tests of the simulated data sets (:mod:`torch_nssm.datasets`)."""
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,11 +11,8 @@ from scipy import stats
 from torch_nssm.datasets import (
     MANIPULATOR_DT,
     MANIPULATOR_RW,
-    SILVERBOX_ARROW_END,
-    SILVERBOX_FS,
     ManipulatorConstants,
     SimulatedData,
-    load_silverbox,
     make_gopaluni_example,
     make_huang_example,
     make_manipulator,
@@ -26,8 +22,6 @@ from torch_nssm.datasets import (
 )
 
 GENERATORS = [make_paper_example, make_gopaluni_example, make_huang_example, make_manipulator]
-SILVERBOX_DIR = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "silverbox"
-SILVERBOX_N = 131_072
 
 
 # ------------------------------------------------------------------------------------------
@@ -339,79 +333,6 @@ def test_bad_huang_arguments(kwargs, name):
 def test_bad_manipulator_arguments(kwargs, name):
     with pytest.raises(ValueError, match=name):
         make_manipulator(**kwargs)
-
-
-# ------------------------------------------------------------------------------------------
-# Silverbox
-# ------------------------------------------------------------------------------------------
-
-needs_silverbox = pytest.mark.skipif(
-    not (SILVERBOX_DIR / "SNLS80mV.csv").is_file(),
-    reason=f"Silverbox data not found at {SILVERBOX_DIR.resolve()} (shared reference data)",
-)
-
-
-@needs_silverbox
-@pytest.mark.parametrize(
-    "part, n",
-    [
-        ("all", SILVERBOX_N),
-        ("arrow", SILVERBOX_ARROW_END),
-        ("multisine", SILVERBOX_N - SILVERBOX_ARROW_END),
-    ],
-)
-def test_silverbox_parts(part, n):
-    u, y = load_silverbox(SILVERBOX_DIR, part=part)
-    assert u.shape == (n, 1) and y.shape == (n, 1)
-    assert u.dtype == np.float64 and y.dtype == np.float64
-    assert np.all(np.isfinite(u)) and np.all(np.isfinite(y))
-
-
-@needs_silverbox
-def test_silverbox_values_and_split():
-    u, y = load_silverbox(SILVERBOX_DIR, part="all")
-    # first data row of SNLS80mV.csv: 0.0057756,0.0093978,
-    assert u[0, 0] == pytest.approx(0.0057756) and y[0, 0] == pytest.approx(0.0093978)
-    ua, ya = load_silverbox(SILVERBOX_DIR, part="arrow")
-    um, ym = load_silverbox(SILVERBOX_DIR, part="multisine")
-    np.testing.assert_array_equal(np.vstack([ua, um]), u)
-    np.testing.assert_array_equal(np.vstack([ya, ym]), y)
-    # returned arrays are independent copies
-    u[0, 0] = 123.0
-    assert load_silverbox(SILVERBOX_DIR, part="all")[0][0, 0] != 123.0
-    assert SILVERBOX_FS == pytest.approx(610.3515625)
-
-
-@needs_silverbox
-def test_silverbox_default_path(monkeypatch):
-    # the default search finds ../shared/data/silverbox relative to the repository root ...
-    monkeypatch.chdir("/")
-    u, _ = load_silverbox(part="arrow")
-    assert u.shape == (SILVERBOX_ARROW_END, 1)
-
-
-@needs_silverbox
-def test_silverbox_other_file():
-    if not (SILVERBOX_DIR / "Schroeder80mV.csv").is_file():
-        pytest.skip("Schroeder80mV.csv not present")
-    u, y = load_silverbox(SILVERBOX_DIR, part="all", file="Schroeder80mV.csv")
-    assert u.shape == y.shape == (SILVERBOX_N, 1)
-    assert np.all(np.isfinite(u)) and np.all(np.isfinite(y))
-    with pytest.raises(ValueError, match="part"):
-        load_silverbox(SILVERBOX_DIR, part="arrow", file="Schroeder80mV.csv")
-
-
-def test_silverbox_missing(tmp_path):
-    missing = tmp_path / "nowhere"
-    with pytest.raises(FileNotFoundError) as exc:
-        load_silverbox(missing)
-    msg = str(exc.value)
-    assert str(missing.resolve()) in msg and "nonlinear-benchmarks" in msg
-
-
-def test_silverbox_bad_part(tmp_path):
-    with pytest.raises(ValueError, match="part"):
-        load_silverbox(tmp_path, part="train")
 
 
 def test_positional_signatures():

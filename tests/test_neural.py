@@ -1,4 +1,4 @@
-"""Tests of the neural blocks (:mod:`torch_nssm.neural`)."""
+"""Tests of the neural blocks (:mod:`torch_nssm.blocks.neural`)."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ import torch
 from torch import nn
 
 from torch_nssm import RobustNSSMEstimator
+from torch_nssm.blocks.neural import GreyBoxTransition, MLPObservation, MLPTransition
 from torch_nssm.datasets import make_paper_example
 from torch_nssm.models import PaperObservation, PaperTransition
-from torch_nssm.neural import GreyBoxTransition, MLPObservation, MLPTransition
 
 torch.set_num_threads(1)
 DTYPE = torch.float64

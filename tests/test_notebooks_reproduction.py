@@ -8,6 +8,7 @@ a FULL run (so that a reader sees the paper-scale results without running anythi
 from __future__ import annotations
 
 import math
+import os
 import re
 import shutil
 import time
@@ -19,6 +20,17 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+_REPO = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(autouse=True)
+def _kernel_imports_this_checkout(monkeypatch):
+    """The kernel (which inherits the environment) imports this checkout's ``torch_nssm`` and
+    ``examples/``, not an installed copy."""
+    paths = [str(_REPO), str(_REPO / "examples"), os.environ.get("PYTHONPATH", "")]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
+
+
 #: notebook -> number of figures it shows
 EXPECTED_IMAGES = {"fig2": 1, "gopaluni": 1, "table1": 1, "manipulator": 2}
 #: the FAST execution of one notebook must stay below this (kernel start included), seconds

@@ -1,4 +1,4 @@
-"""Tests of the Silverbox case study (:mod:`torch_nssm.silverbox`).
+"""Tests of the Silverbox case study (``examples/silverbox/study.py``).
 
 The data are not shipped: the tests look in ``$TORCH_NSSM_SILVERBOX`` or
 ``../shared/data/silverbox`` beside the repository and skip when ``SNLS80mV.csv`` is absent.
@@ -8,6 +8,7 @@ The model tests need no data.
 from __future__ import annotations
 
 import os
+import sys
 import warnings
 from pathlib import Path
 
@@ -16,7 +17,11 @@ import pytest
 import torch
 
 from torch_nssm import RobustNSSMEstimator
-from torch_nssm.silverbox import (
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "examples"))
+
+from silverbox import (  # noqa: E402
     ARROW_WINDOWS,
     DuffingTransition,
     PositionObservation,
@@ -28,7 +33,6 @@ from torch_nssm.silverbox import (
 
 torch.set_num_threads(1)
 DTYPE = torch.float64
-REPO = Path(__file__).resolve().parent.parent
 DATA_DIR = Path(os.environ.get("TORCH_NSSM_SILVERBOX", REPO / ".." / "shared" / "data" / "silverbox"))
 HAVE_DATA = (DATA_DIR / "SNLS80mV.csv").is_file()
 needs_data = pytest.mark.skipif(
@@ -165,7 +169,7 @@ def test_prepare_silverbox():
     # robust normalisation: the clean training output has spread about 1
     assert 0.8 < np.std(d.y_train_clean) < 1.3
     # back to mV
-    from torch_nssm.datasets import load_silverbox
+    from silverbox import load_silverbox
 
     _, y_arrow = load_silverbox(DATA_DIR, part="arrow")
     np.testing.assert_allclose(d.to_mv(d.y_arrow[:, 0]), 1e3 * y_arrow[:, 0], atol=1e-9)

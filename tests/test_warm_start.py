@@ -1,4 +1,4 @@
-"""Tests of the warm start (:mod:`torch_nssm.warm_start`)."""
+"""Tests of the warm start and the linear blocks (:mod:`torch_nssm.blocks`)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,11 @@ import pytest
 import torch
 
 from torch_nssm import RobustNSSMEstimator, warm_start_estimator
+from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+from torch_nssm.blocks.neural import GreyBoxTransition, MLPObservation, MLPTransition
+from torch_nssm.blocks.warm_start import WarmStartInfo, distill
 from torch_nssm.datasets import make_paper_example
 from torch_nssm.models import PaperObservation, PaperTransition, true_model
-from torch_nssm.neural import GreyBoxTransition, MLPObservation, MLPTransition
-from torch_nssm.warm_start import LinearObservation, LinearTransition, WarmStartInfo, distill
 
 torch.set_num_threads(1)
 DTYPE = torch.float64

@@ -3,14 +3,15 @@
 ``RobustNSSMEstimator(f, g, x0_mean=...).fit(u, y)`` estimates the parameters of
 ``x_{k+1} = f(x_k, u_k) + w`` and ``y_k = g(x_k, u_k) + v`` with Student-t measurement noise ``v``
 (robust to outliers) by EM with a particle smoother (Liu & Yang, Neurocomputing 2019).
+
+The public names are imported on first use (PEP 562), so ``import torch_nssm`` loads neither
+matplotlib nor the data sets; :mod:`torch_nssm.reproduce` (the paper's experiments) is an
+optional subpackage imported only by name.
 """
 
-from . import datasets, models, neural, plotting, silverbox, warm_start
-from .core.parametric import LinearInParameters
-from .estimator import RobustNSSMEstimator, fit_independent
-from .inference.filtering import NumericalError
-from .inference.results import StateEstimate
-from .warm_start import warm_start_estimator
+from __future__ import annotations
+
+import importlib
 
 __all__ = [
     "RobustNSSMEstimator",
@@ -24,6 +25,35 @@ __all__ = [
     "neural",
     "plotting",
     "warm_start",
-    "silverbox",
 ]
 __version__ = "0.1.0"
+
+#: public name -> (module, attribute); attribute None: the module itself
+_LAZY = {
+    "RobustNSSMEstimator": (".estimator", "RobustNSSMEstimator"),
+    "LinearInParameters": (".core.parametric", "LinearInParameters"),
+    "StateEstimate": (".inference.results", "StateEstimate"),
+    "NumericalError": (".inference.filtering", "NumericalError"),
+    "fit_independent": (".estimator", "fit_independent"),
+    "warm_start_estimator": (".blocks.warm_start", "warm_start_estimator"),
+    "datasets": (".datasets", None),
+    "models": (".models", None),
+    "neural": (".neural", None),
+    "plotting": (".plotting", None),
+    "warm_start": (".warm_start", None),
+}
+
+
+def __getattr__(name: str):
+    try:
+        module, attr = _LAZY[name]
+    except KeyError:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}") from None
+    mod = importlib.import_module(module, __name__)
+    value = mod if attr is None else getattr(mod, attr)
+    globals()[name] = value  # later look-ups skip __getattr__
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

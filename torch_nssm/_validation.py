@@ -285,3 +285,137 @@ def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *,
                 f"(..., {nx}) (nx = len(x0_mean)) and u of shape (..., {nu}); "
                 f"got {shape} for x of shape (3, {nx})"
             )
+
+
+# --------------------------------------------------------------------------------------------
+# NumPy-side checks for the application modules (data generators, ready-made blocks).
+# They coerce what NumPy accepts and raise ValueError naming the argument (a wrong type of
+# number is a ValueError here, as the data generators have always reported it).
+# --------------------------------------------------------------------------------------------
+
+__all__ += [
+    "check_count",
+    "check_real",
+    "check_pair",
+    "check_vector_array",
+    "check_matrix_array",
+    "check_covariance_array",
+    "as_rows_array",
+]
+
+
+def check_count(value, name: str, minimum: int = 1) -> int:
+    """An integer ``>= minimum`` (bool excluded); ValueError otherwise."""
+    try:
+        check_positive(value, name, integer=True, minimum=minimum, inclusive=True)
+    except TypeError:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}") from None
+    return int(value)
+
+
+def check_real(
+    value,
+    name: str,
+    *,
+    low: float | None = None,
+    high: float | None = None,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> float:
+    """A real number (anything ``float()`` accepts, NaN excluded) within optional bounds."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real number, got {value!r}") from None
+    if np.isnan(v):
+        raise ValueError(f"{name} must not be NaN")
+    below = low is not None and (v < low or (low_open and v == low))
+    above = high is not None and (v > high or (high_open and v == high))
+    if below or above:
+        if high is None:
+            raise ValueError(f"{name} must be {'>' if low_open else '>='} {low}, got {value!r}")
+        if low is None:
+            raise ValueError(f"{name} must be {'<' if high_open else '<='} {high}, got {value!r}")
+        lb, rb = "(" if low_open else "[", ")" if high_open else "]"
+        raise ValueError(f"{name} must lie in {lb}{low}, {high}{rb}, got {value!r}")
+    return v
+
+
+def check_pair(value, name: str) -> tuple[float, float]:
+    """A finite pair ``(low, high)`` with ``low < high``."""
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair (low, high) of numbers, got {value!r}") from None
+    if not (np.isfinite(lo) and np.isfinite(hi)) or not lo < hi:
+        raise ValueError(f"{name} must be a finite pair with low < high, got {value!r}")
+    return lo, hi
+
+
+def _float_array(value, name: str) -> np.ndarray:
+    if isinstance(value, Tensor):
+        value = value.detach().cpu().numpy()
+    try:
+        return np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be numeric, got {value!r}") from None
+
+
+def check_vector_array(value, name: str, dim: int, *, positive: bool = False) -> np.ndarray:
+    """A finite float64 vector of shape ``(dim,)``; a scalar is repeated ``dim`` times."""
+    arr = _float_array(value, name)
+    if arr.ndim == 0:
+        arr = np.full(dim, float(arr))
+    if arr.shape != (dim,):
+        raise ValueError(f"{name} must be a scalar or have shape ({dim},), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite, got {arr.tolist()}")
+    if positive and np.any(arr <= 0):
+        raise ValueError(f"{name} must be positive, got {arr.tolist()}")
+    return arr
+
+
+def check_matrix_array(value, name: str, shape: tuple[int, int]) -> np.ndarray:
+    """A finite float64 matrix of the given shape; a scalar means ``value * I`` (square) or a
+    matrix filled with it."""
+    arr = _float_array(value, name)
+    if arr.ndim == 0:
+        arr = float(arr) * np.eye(*shape) if shape[0] == shape[1] else np.full(shape, float(arr))
+    if arr.shape != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite")
+    return arr
+
+
+def check_covariance_array(value, name: str, dim: int) -> np.ndarray:
+    """A symmetric positive semi-definite ``(dim, dim)`` float64 matrix (singular allowed, e.g. a
+    noise-free simulation); a scalar means ``value * I`` and a vector a diagonal."""
+    arr = _float_array(value, name)
+    if arr.ndim == 0:
+        arr = arr * np.eye(dim)
+    elif arr.ndim == 1 and arr.shape == (dim,):
+        arr = np.diag(arr)
+    elif arr.shape != (dim, dim):
+        raise ValueError(
+            f"{name} must be a scalar, a length-{dim} vector or a ({dim}, {dim}) matrix, "
+            f"got shape {arr.shape}"
+        )
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} must be finite")
+    if not np.allclose(arr, arr.T, rtol=1e-10, atol=1e-14):
+        raise ValueError(f"{name} must be symmetric")
+    if np.linalg.eigvalsh(arr).min() < -1e-12 * max(1.0, float(np.abs(arr).max())):
+        raise ValueError(f"{name} must be positive semi-definite")
+    return arr
+
+
+def as_rows_array(value, name: str, n: int) -> np.ndarray:
+    """Data as float64 rows of width ``n``, shape ``(rows, n)``; a 1-D array is one column when
+    ``n == 1``.  NaN is kept (callers ignore it)."""
+    arr = _float_array(value, name)
+    if arr.ndim == 1 and n == 1:
+        arr = arr[:, None]
+    if arr.ndim == 0 or arr.shape[-1] != n:
+        raise ValueError(f"{name} must have shape (..., {n}), got shape {arr.shape}")
+    return arr.reshape(-1, n)

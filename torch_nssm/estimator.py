@@ -1,7 +1,9 @@
 """``RobustNSSMEstimator``: the scikit-learn style front of the robust EM method.
 
-The estimator validates its arguments, runs the EM loop (E-step and M-step live in
-:mod:`torch_nssm.em`), and hands prediction and simulation to :mod:`torch_nssm.prediction`.
+The estimator validates its arguments, turns them into the options of the EM loop
+(:func:`torch_nssm.estimation.loop.run_em`), stores what the loop returns as fitted attributes,
+and hands prediction and simulation to :mod:`torch_nssm.inference.prediction`.
+:func:`fit_independent` is the same loop over many data sets at once.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from sklearn.utils import check_random_state
 from torch import nn
 
 from . import _validation as V
+from ._stats import robust_scale
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
@@ -135,7 +138,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Particle smoother of the E-step: ``"ffbsm"`` exact forward-filtering backward-smoothing,
         O(N L^2); ``"ffbsi"`` backward simulation by rejection sampling with an exact fallback and
         ``"mcmc"`` backward simulation with Metropolis-Hastings moves, both O(N L) and giving the
-        same M-step estimates within Monte Carlo error (:mod:`torch_nssm.smoothing`).  FFBSm builds
+        same M-step estimates within Monte Carlo error (:mod:`torch_nssm.inference.smoothing`).  FFBSm builds
         its ``L x L`` kernels in single precision (states centred per step, statistics accumulated
         in ``dtype``: relative rounding ~1e-7, far below the Monte Carlo error).  ``"mcmc"`` is the
         fastest for large ``L``; ``"ffbsm"`` has no sampling noise of its own.
@@ -850,8 +853,7 @@ def _jittered(model: StateSpaceModel, scale: float, rs: np.random.RandomState) -
 
 def default_rv_init(y: np.ndarray) -> torch.Tensor:
     """Default initial ``diag(Rv)``: ``0.02`` times a robust variance of each output column."""
-    med = np.nanmedian(y, axis=0)
-    s2 = (1.4826 * np.nanmedian(np.abs(y - med), axis=0)) ** 2
+    s2 = robust_scale(y, axis=0) ** 2
     var = np.where(s2 > 0, s2, np.nanvar(y, axis=0))
     return torch.from_numpy(0.02 * np.where(var > 0, var, 1.0))
 

@@ -39,11 +39,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from . import _validation as V
-from ._ops import broadcast_leading
-from .core.parametric import LinearInParameters
-from .datasets import SILVERBOX_ARROW_END, SILVERBOX_FS, load_silverbox
-from .estimator import RobustNSSMEstimator
+from torch_nssm import RobustNSSMEstimator
+from torch_nssm import _validation as V
+from torch_nssm._ops import broadcast_leading
+from torch_nssm._stats import robust_scale
+from torch_nssm.core.parametric import LinearInParameters
+
+from .data import SILVERBOX_ARROW_END, SILVERBOX_FS, load_silverbox
 
 __all__ = [
     "DuffingTransition",
@@ -201,7 +203,7 @@ def equation_error_init(
     # start: screen spikes by the second difference (an outlier of size a makes it about a)
     d2 = np.zeros(n)
     d2[1:-1] = y[1:-1] - 0.5 * (y[:-2] + y[2:])
-    mad = 1.4826 * np.nanmedian(np.abs(d2[1:-1] - np.nanmedian(d2[1:-1]))) + 1e-300
+    mad = float(robust_scale(d2[1:-1], axis=None)) + 1e-300
     sample_w = np.where(np.abs(d2) > 3.5 * mad, 0.0, 1.0)
     row_w = np.where(ok, np.minimum(np.minimum(sample_w[:-2], sample_w[1:-1]), sample_w[2:]), 0.0)
     if row_w.sum() < 2 * len(keep):  # the screen removed nearly everything: start from all rows
@@ -274,7 +276,7 @@ class SilverboxData:
 
 def _robust_center_scale(a: np.ndarray) -> tuple[float, float]:
     med = float(np.median(a))
-    mad = 1.4826 * float(np.median(np.abs(a - med)))
+    mad = float(robust_scale(a, axis=None, center=med))
     return med, (mad if mad > 0 else float(np.std(a)) or 1.0)
 
 
@@ -296,7 +298,7 @@ def prepare_silverbox(
     Parameters
     ----------
     path : str or path-like, optional
-        Directory of ``SNLS80mV.csv`` (see :func:`~torch_nssm.datasets.load_silverbox`).
+        Directory of ``SNLS80mV.csv`` (see :func:`load_silverbox`).
     n_train : int, default=3000
         Length of the training segment.
     start : int, default=0
@@ -314,8 +316,7 @@ def prepare_silverbox(
     """
     V.check_positive(n_train, "n_train", integer=True, minimum=100, inclusive=True)
     V.check_positive(start, "start", integer=True, minimum=0, inclusive=True)
-    if not (isinstance(outlier_fraction, (int, float)) and 0 <= outlier_fraction < 1):
-        raise ValueError(f"outlier_fraction must lie in [0, 1), got {outlier_fraction!r}")
+    outlier_fraction = V.check_real(outlier_fraction, "outlier_fraction", low=0.0, high=1.0, high_open=True)
     lo, hi = (float(a) for a in outlier_range)
     if not 0 <= lo <= hi:
         raise ValueError(f"outlier_range must satisfy 0 <= low <= high, got {outlier_range!r}")
@@ -458,7 +459,7 @@ def silverbox_study(
     Parameters
     ----------
     path : str or path-like, optional
-        Directory of ``SNLS80mV.csv`` (default ``../shared/data/silverbox``).
+        Directory of ``SNLS80mV.csv`` (default: see :func:`load_silverbox`).
     n_train : int, default=3000
         Training segment length (multisine samples ``[start, start + n_train)``).  EM costs
         ``O(n_train * n_particles^2)`` per iteration with ``smoother="ffbsm"``: with the defaults

@@ -1,0 +1,73 @@
+"""``import torch_nssm`` is light: public names resolve on first use (PEP 562)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import torch_nssm
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _run(code: str, *flags: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, *flags, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+
+
+def test_import_is_lazy():
+    code = (
+        "import json, sys, torch_nssm; "
+        "print(json.dumps([m for m in ('matplotlib', 'torch_nssm.reproduce', 'torch_nssm.datasets', "
+        "'torch_nssm.plotting', 'tqdm') if m in sys.modules]))"
+    )
+    res = _run(code)
+    assert res.returncode == 0, res.stderr
+    loaded = json.loads(res.stdout.strip().splitlines()[-1])
+    assert not {"matplotlib", "torch_nssm.reproduce", "torch_nssm.datasets"} & set(loaded), loaded
+
+
+def test_import_emits_no_warning():
+    res = _run("import torch_nssm", "-W", "error")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == ""
+
+
+def test_public_names_resolve():
+    code = (
+        "import torch_nssm; "
+        "[getattr(torch_nssm, n) for n in torch_nssm.__all__]; "
+        "import sys; print('torch_nssm.reproduce' in sys.modules)"
+    )
+    res = _run(code)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip().endswith("False")  # resolving every public name leaves reproduce out
+    for name in torch_nssm.__all__:
+        assert getattr(torch_nssm, name) is not None
+        assert name in dir(torch_nssm)
+    from torch_nssm import reproduce  # the optional subpackage, by name
+
+    assert callable(reproduce.fig2)
+
+
+def test_unknown_name_raises_attribute_error():
+    import pytest
+
+    with pytest.raises(AttributeError, match="no_such_name"):
+        torch_nssm.no_such_name  # noqa: B018
+
+
+def test_public_paths_of_moved_modules():
+    """The old import paths re-export the objects of their new homes."""
+    from torch_nssm import blocks, models, neural, warm_start
+    from torch_nssm.datasets import manipulator, paper
+
+    assert neural.MLPTransition is blocks.MLPTransition
+    assert warm_start.warm_start_estimator is blocks.warm_start_estimator is torch_nssm.warm_start_estimator
+    assert warm_start.LinearTransition is blocks.LinearTransition
+    assert models.PaperTransition is paper.PaperTransition
+    assert models.ManipulatorTransition is manipulator.ManipulatorTransition
+    assert set(neural.__all__) <= set(dir(neural))

@@ -1,0 +1,155 @@
+"""Linear ``f`` / ``g`` blocks, linear in their parameters (closed-form M-steps).
+
+:class:`LinearTransition` and :class:`LinearObservation` are the reference models of a warm
+start (:mod:`torch_nssm.blocks.warm_start`) and a fast first model of any system.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Union
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from .. import _validation as V
+from .._ops import broadcast_leading
+from ..core.parametric import LinearInParameters
+
+__all__ = ["LinearTransition", "LinearObservation"]
+
+ArrayLike = Union[Tensor, np.ndarray, Sequence, float, None]
+
+
+def _matrix(
+    value: ArrayLike, shape: tuple[int, int], name: str, default: np.ndarray, dtype, device
+) -> Tensor:
+    arr = default if value is None else V.check_matrix_array(value, name, shape)
+    return torch.as_tensor(np.array(arr, dtype=np.float64), dtype=dtype, device=device)
+
+
+def _kron_rows(z: Tensor, d: int) -> Tensor:
+    """``Phi`` of shape ``(..., d, d * m)`` with ``Phi[..., i, i * m + j] = z[..., j]``, so that
+    ``Phi @ M.reshape(-1) = z @ M.T`` for a ``(d, m)`` matrix ``M`` (row-major flattening)."""
+    eye = torch.eye(d, dtype=z.dtype, device=z.device)
+    m = z.shape[-1]
+    return (eye[:, :, None] * z[..., None, None, :]).reshape(*z.shape[:-1], d, d * m)
+
+
+class LinearTransition(LinearInParameters):
+    """Linear transition ``f(x, u) = A x + B u (+ c)``: the reference model of a warm start.
+
+    Linear in ``theta = (A, B[, c])``, so the EM engine updates it in closed form (fast).
+
+    Parameters
+    ----------
+    nx : int
+        State dimension.
+    nu : int
+        Input dimension (0 for a system without input).
+    A : array-like of shape (nx, nx) or float, optional
+        Initial state matrix (a scalar means ``A * I``); default ``0.5 I``.
+    B : array-like of shape (nx, nu) or float, optional
+        Initial input matrix (a scalar fills it); default ``0.5`` everywhere.
+    bias : bool, default=False
+        Add a free offset ``c`` (initially 0).
+    dtype : torch.dtype, default=torch.float64
+    device : torch.device or str, optional
+
+    Attributes
+    ----------
+    A, B : nn.Parameter
+    c : nn.Parameter, only with ``bias=True``
+    """
+
+    def __init__(
+        self,
+        nx: int,
+        nu: int,
+        *,
+        A: ArrayLike = None,
+        B: ArrayLike = None,
+        bias: bool = False,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.nx = V.check_positive(nx, "nx", integer=True, minimum=1, inclusive=True)
+        self.nu = V.check_positive(nu, "nu", integer=True, minimum=0, inclusive=True)
+        kw = dict(dtype=dtype, device=device)
+        self.A = nn.Parameter(_matrix(A, (nx, nx), "A", 0.5 * np.eye(nx), **kw))
+        self.B = nn.Parameter(_matrix(B, (nx, nu), "B", np.full((nx, nu), 0.5), **kw))
+        self.bias = bool(bias)
+        if self.bias:
+            self.c = nn.Parameter(torch.zeros(nx, **kw))
+
+    def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """``Phi`` of shape ``(..., nx, P)`` over ``(A, B[, c])`` and a zero offset ``(..., nx)``."""
+        x, u = broadcast_leading(x, u)
+        blocks = [_kron_rows(x, self.nx), _kron_rows(u, self.nx)]
+        if self.bias:
+            blocks.append(torch.eye(self.nx, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], -1, -1))
+        return torch.cat(blocks, dim=-1), torch.zeros_like(x)
+
+    def extra_repr(self) -> str:
+        return f"nx={self.nx}, nu={self.nu}, bias={self.bias}"
+
+
+class LinearObservation(LinearInParameters):
+    """Linear observation ``g(x, u) = C x + D u + d``: the reference of an MLP observation.
+
+    Parameters
+    ----------
+    nx : int
+        State dimension.
+    nu : int
+        Input dimension (0 for a system without input, or when ``g`` ignores ``u``).
+    p : int
+        Number of outputs.
+    C : array-like of shape (p, nx) or float, optional
+        Initial output matrix; default ones on the diagonal ``C[i, i]`` and zeros elsewhere.
+    D : array-like of shape (p, nu) or float, optional
+        Initial feed-through; default zeros.
+    d : array-like of shape (p,) or float, optional
+        Initial offset; default zeros.
+    feedthrough : bool, default=False
+        Estimate ``D`` (otherwise it is held fixed at its initial value).
+    dtype : torch.dtype, default=torch.float64
+    device : torch.device or str, optional
+    """
+
+    def __init__(
+        self,
+        nx: int,
+        nu: int,
+        p: int,
+        *,
+        C: ArrayLike = None,
+        D: ArrayLike = None,
+        d: ArrayLike = None,
+        feedthrough: bool = False,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__()
+        self.nx = V.check_positive(nx, "nx", integer=True, minimum=1, inclusive=True)
+        self.nu = V.check_positive(nu, "nu", integer=True, minimum=0, inclusive=True)
+        self.p = V.check_positive(p, "p", integer=True, minimum=1, inclusive=True)
+        kw = dict(dtype=dtype, device=device)
+        self.C = nn.Parameter(_matrix(C, (p, nx), "C", np.eye(p, nx), **kw))
+        self.D = nn.Parameter(
+            _matrix(D, (p, nu), "D", np.zeros((p, nu)), **kw), requires_grad=bool(feedthrough)
+        )
+        off = np.zeros(p) if d is None else V.check_vector_array(d, "d", p)
+        self.d = nn.Parameter(torch.as_tensor(off, **kw))
+
+    def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """``Phi`` of shape ``(..., p, P)`` over ``(C, D, d)`` and a zero offset ``(..., p)``."""
+        x, u = broadcast_leading(x, u)
+        eye = torch.eye(self.p, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], -1, -1)
+        Phi = torch.cat([_kron_rows(x, self.p), _kron_rows(u, self.p), eye], dim=-1)
+        return Phi, x.new_zeros(*x.shape[:-1], self.p)
+
+    def extra_repr(self) -> str:
+        return f"nx={self.nx}, nu={self.nu}, p={self.p}"

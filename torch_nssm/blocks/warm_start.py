@@ -1,0 +1,463 @@
+"""Warm starts for neural and grey-box models: fit a fast model first, start the network from it.
+
+:func:`warm_start_estimator` fits a reference model by EM (by default a
+:class:`~torch_nssm.blocks.linear.LinearTransition`: closed-form M-steps), smooths the states with
+it, sets the networks' normalisation from those states and trains the networks to imitate the
+reference (:func:`distill`).  The result is an unfitted clone of the user's estimator that starts
+where the reference ended.  Why and how: ``docs/design.md`` ("Warm starts").
+
+Example
+-------
+>>> from torch_nssm import RobustNSSMEstimator, warm_start_estimator
+>>> from torch_nssm.neural import MLPTransition
+>>> from torch_nssm.models import PaperObservation
+>>> est = RobustNSSMEstimator(MLPTransition(1, 1, hidden=(16,), random_state=0),
+...                           PaperObservation(0.5), x0_mean=[0.0], optimizer="adam",
+...                           max_iter_mstep=50, n_iter=10, random_state=0)
+>>> est = warm_start_estimator(est, u, y).fit(u, y)                # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Union
+
+import numpy as np
+import torch
+from sklearn.base import clone
+from torch import Tensor, nn
+
+from .. import _validation as V
+from .._stats import robust_scale
+from ..core.noise import NOISE_MODELS
+from ..estimator import RobustNSSMEstimator
+from .linear import LinearObservation, LinearTransition
+from .neural import GreyBoxTransition, MLPObservation, MLPTransition
+
+__all__ = ["distill", "warm_start_estimator", "WarmStartInfo", "LinearTransition", "LinearObservation"]
+
+ArrayLike = Union[Tensor, np.ndarray, Sequence, float, None]
+
+
+# ---------------------------------------------------------------------- distillation
+def _free_parameters(module: nn.Module) -> list[nn.Parameter]:
+    return [p for p in module.parameters() if p.requires_grad]
+
+
+@torch.no_grad()
+def _target(reference: nn.Module, x: Tensor, u: Tensor) -> Tensor:
+    return reference(x, u)
+
+
+def distill(
+    module: nn.Module,
+    reference: nn.Module,
+    x: ArrayLike,
+    u: ArrayLike = None,
+    *,
+    scale: ArrayLike = None,
+    baseline: ArrayLike = None,
+    max_iter: int = 300,
+    tol: float = 1e-10,
+) -> float:
+    """Train ``module`` in place so that ``module(x, u)`` matches ``reference(x, u)``.
+
+    Minimises the mean squared error ``mean(((module(x, u) - reference(x, u)) / scale)^2)`` over
+    the rows of ``x`` and ``u`` by full-batch LBFGS (strong-Wolfe line search) over the module's
+    parameters with ``requires_grad=True``.  Used by :func:`warm_start_estimator` to start a neural
+    transition at a fitted linear model.
+
+    Parameters
+    ----------
+    module : nn.Module
+        The module to train, called ``module(x, u)`` (e.g. an
+        :class:`~torch_nssm.neural.MLPTransition` whose normalisation is already set).
+    reference : nn.Module
+        The module to imitate, with the same call signature and output width.
+    x : array-like of shape (M, nx)
+        States where the two must agree.
+    u : array-like of shape (M, nu), optional
+        Inputs (``None``: no input, ``nu = 0``).
+    scale : float or array-like of shape (d,), optional
+        Error scale per output column.  Default: the standard deviation of ``reference(x, u) -
+        baseline`` (see ``baseline``), or of ``reference(x, u)`` itself.
+    baseline : array-like of shape (M, d), optional
+        Subtracted from the targets before computing the default ``scale`` (for a transition,
+        pass ``x``: the scale becomes that of the increments ``f(x, u) - x``).
+    max_iter : int, default=300
+        LBFGS iterations.
+    tol : float, default=1e-10
+        LBFGS tolerance on the change of the loss.
+
+    Returns
+    -------
+    float
+        Relative root-mean-square error after training, ``sqrt(loss)`` (0 is perfect; 1 is as
+        bad as predicting a constant).
+
+    Raises
+    ------
+    TypeError
+        If ``module`` or ``reference`` is not an ``nn.Module``.
+    ValueError
+        If the shapes disagree, the data are not finite, or ``module`` has no free parameters.
+    """
+    for name, m in (("module", module), ("reference", reference)):
+        if not isinstance(m, nn.Module):
+            raise TypeError(
+                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(m).__name__}"
+            )
+    V.check_positive(max_iter, "max_iter", integer=True, minimum=1, inclusive=True)
+    V.check_positive(tol, "tol", minimum=0.0, inclusive=True)
+    params = _free_parameters(module)
+    if not params:
+        raise ValueError("module has no parameters with requires_grad=True to train")
+    ref_t = next(iter(list(module.parameters()) + list(module.buffers())))
+    kw = dict(dtype=ref_t.dtype, device=ref_t.device)
+    xt = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, Tensor) else x).to(**kw)
+    if xt.dim() != 2 or xt.shape[0] == 0:
+        raise ValueError(f"x must have shape (M, nx) with M >= 1, got shape {tuple(xt.shape)}")
+    if u is None:
+        ut = xt.new_zeros(xt.shape[0], 0)
+    else:
+        ut = torch.as_tensor(np.asarray(u, dtype=np.float64) if not isinstance(u, Tensor) else u).to(**kw)
+        if ut.dim() == 1:
+            ut = ut.unsqueeze(-1)
+        if ut.dim() != 2 or ut.shape[0] != xt.shape[0]:
+            raise ValueError(
+                f"u must have shape ({xt.shape[0]}, nu) like x's rows, got shape {tuple(ut.shape)}"
+            )
+    if not (bool(torch.isfinite(xt).all()) and bool(torch.isfinite(ut).all())):
+        raise ValueError("x and u must be finite")
+    target = _target(copy.deepcopy(reference).to(**kw), xt, ut)
+    with torch.no_grad():
+        start = module(xt, ut)
+    if start.shape != target.shape:
+        raise ValueError(
+            "module and reference must return the same shape, "
+            f"got {tuple(start.shape)} and {tuple(target.shape)}"
+        )
+    if scale is None:
+        base = target if baseline is None else target - torch.as_tensor(np.asarray(baseline)).to(target)
+        s = base.std(dim=0) if base.shape[0] > 1 else base.abs().mean(dim=0)
+        s = torch.where(torch.isfinite(s) & (s > 1e-12), s, torch.ones_like(s))
+    else:
+        s = torch.as_tensor(np.asarray(scale, dtype=np.float64)).to(target).expand(target.shape[-1]).clone()
+        if not bool((s > 0).all()):
+            raise ValueError("scale must be positive")
+
+    opt = torch.optim.LBFGS(
+        params,
+        lr=1.0,
+        max_iter=max_iter,
+        tolerance_change=tol,
+        history_size=50,
+        line_search_fn="strong_wolfe",
+    )
+
+    def closure() -> Tensor:
+        opt.zero_grad()
+        loss = (((module(xt, ut) - target) / s) ** 2).mean()
+        loss.backward()
+        return loss
+
+    backup = copy.deepcopy(module.state_dict())
+    with torch.no_grad():
+        loss0 = float((((start - target) / s) ** 2).mean())
+    opt.step(closure)
+    with torch.no_grad():
+        loss = float((((module(xt, ut) - target) / s) ** 2).mean())
+    if not math.isfinite(loss) or loss > loss0:
+        module.load_state_dict(backup)
+        loss = loss0
+    return math.sqrt(loss)
+
+
+# ---------------------------------------------------------------------- the warm start
+@dataclass
+class WarmStartInfo:
+    """What :func:`warm_start_estimator` did.
+
+    Attributes
+    ----------
+    reference : RobustNSSMEstimator
+        The fitted reference estimator (its ``f_``, ``g_``, ``Rw_``, ``log_likelihood_``...).
+    f_error, g_error : float or None
+        Relative RMS error of the network's imitation of the reference's ``f`` / ``g``
+        (:func:`distill`); ``None`` where no network was trained (the module was taken over).
+    f_action, g_action : str
+        ``"distilled"`` (a network trained to imitate the reference), ``"physical"`` (a
+        grey-box model's physical part took the fitted parameters), ``"fitted"`` (the fitted
+        reference module itself is the start) or ``"kept"`` (a module without free parameters,
+        unchanged).
+    n_rows : int
+        Number of state rows used to set the normalisation and to distil.
+    seconds : float
+        Wall time of the whole warm start.
+    """
+
+    reference: RobustNSSMEstimator
+    f_error: float | None
+    g_error: float | None
+    f_action: str
+    g_action: str
+    n_rows: int
+    seconds: float = field(default=0.0)
+
+
+def _has_free_parameters(module: nn.Module) -> bool:
+    return any(p.requires_grad for p in module.parameters())
+
+
+def _cheap(module: nn.Module) -> bool:
+    """A module the EM engine fits fast: closed form, or nothing to fit."""
+    return hasattr(module, "solve_weighted_least_squares") or not _has_free_parameters(module)
+
+
+def _records(u: Any, y: Any) -> tuple[list[np.ndarray | None], list[np.ndarray], bool]:
+    """Inputs and outputs as lists of 2-d numpy arrays (one per record)."""
+    multi = V.is_sequence_list(y)
+    ys = list(y) if multi else [y]
+    if u is None:
+        us: list[Any] = [None] * len(ys)
+    else:
+        us = list(u) if multi else [u]
+        if len(us) != len(ys):
+            raise ValueError(f"u and y must hold the same number of records, got {len(us)} and {len(ys)}")
+    out_y = []
+    for a in ys:
+        arr = np.asarray(a.detach().cpu() if isinstance(a, Tensor) else a, dtype=np.float64)
+        out_y.append(arr.reshape(-1, 1) if arr.ndim == 1 else arr)
+    out_u: list[np.ndarray | None] = []
+    for a, b in zip(us, out_y):
+        if a is None:
+            out_u.append(np.zeros((b.shape[0], 0)))
+            continue
+        arr = np.asarray(a.detach().cpu() if isinstance(a, Tensor) else a, dtype=np.float64)
+        out_u.append(arr.reshape(-1, 1) if arr.ndim == 1 else arr)
+    return out_u, out_y, multi
+
+
+def _default_reference_g(nx: int, nu: int, ys: list[np.ndarray]) -> nn.Module:
+    """A linear observation in place of an MLP observation, scaled like the outputs."""
+    yy = np.concatenate(ys, axis=0)
+    med = np.nanmedian(yy, axis=0)
+    mad = robust_scale(yy, axis=0, center=med)
+    spread = np.where(np.isfinite(mad) & (mad > 0), mad, 1.0)
+    p = yy.shape[1]
+    C = np.eye(p, nx) * spread[:, None]
+    return LinearObservation(nx, nu, p, C=C, d=np.nan_to_num(med))
+
+
+def warm_start_estimator(
+    estimator: RobustNSSMEstimator,
+    u: Any,
+    y: Any,
+    *,
+    reference_f: nn.Module | None = None,
+    reference_g: nn.Module | None = None,
+    noise: str | None = None,
+    n_iter: int = 20,
+    n_particles: int | None = None,
+    n_jitter: int = 4,
+    distill_iter: int = 300,
+    random_state: int | None = None,
+    return_info: bool = False,
+) -> RobustNSSMEstimator | tuple[RobustNSSMEstimator, WarmStartInfo]:
+    """A clone of ``estimator`` whose ``f``, ``g`` and noise start at a fitted reference model.
+
+    Fits a reference model by EM (a linear transition by default: closed-form M-steps, fast),
+    smooths the states with it, sets the neural modules' normalisation from the smoothed
+    states and trains them to imitate the reference.  Call ``.fit(u, y)`` on the result.
+
+    Parameters
+    ----------
+    estimator : RobustNSSMEstimator
+        The (unfitted) estimator of the model you want, e.g. with an
+        :class:`~torch_nssm.neural.MLPTransition` as ``f``.  It is not changed.
+    u : array-like of shape (N,) or (N, nu), list of them, or None
+        Inputs, as for :meth:`~torch_nssm.RobustNSSMEstimator.fit`.
+    y : array-like of shape (N,) or (N, p), or list of them
+        Outputs (NaN: missing).
+    reference_f : nn.Module, optional
+        The reference transition fitted first (its initial values matter as for any EM fit).
+        Default: the physical part of a :class:`~torch_nssm.neural.GreyBoxTransition`; a
+        :class:`LinearTransition` (``A = 0.5 I``, ``B = 0.5``) for any other module with free
+        parameters and no closed-form M-step; ``f`` itself otherwise.
+    reference_g : nn.Module, optional
+        The reference observation.  Default: ``g`` itself when it has a closed-form M-step or no
+        free parameters; a :class:`LinearObservation` (scaled by a robust spread of ``y``) for an
+        :class:`~torch_nssm.neural.MLPObservation`; ``g`` itself otherwise.
+    noise : {"student-t", "gaussian"}, optional
+        Measurement-noise model of the reference fit; default the estimator's.
+    n_iter : int, default=20
+        EM iterations of the reference fit.
+    n_particles : int, optional
+        Particles of the reference fit; default the estimator's ``n_particles``.
+    n_jitter : int, default=4
+        Jittered copies of each smoothed state (drawn with the smoothed spread plus the process
+        noise) added to the rows the network learns from: the particles of the later fit
+        explore that neighbourhood.
+    distill_iter : int, default=300
+        LBFGS iterations of :func:`distill`.
+    random_state : int, optional
+        Seed of the jitter and of the reference fit; default the estimator's ``random_state``.
+    return_info : bool, default=False
+        Also return a :class:`WarmStartInfo` (the fitted reference, the imitation errors, time).
+
+    Returns
+    -------
+    RobustNSSMEstimator
+        ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
+        ``Rv_init`` (and ``dof_init`` for Student-t noise) set from the reference; unfitted.
+    WarmStartInfo
+        Only with ``return_info=True``.
+
+    Raises
+    ------
+    TypeError
+        If ``estimator`` is not a :class:`~torch_nssm.RobustNSSMEstimator` or a reference is not
+        an ``nn.Module``.
+    ValueError
+        For bad numbers or data (as :meth:`~torch_nssm.RobustNSSMEstimator.fit`).
+
+    Notes
+    -----
+    Keep ``n_init=1`` for the fit after a warm start: restarts jitter every network weight
+    (``init_jitter``), which throws the warm start away.
+    """
+    t0 = time.perf_counter()
+    if not isinstance(estimator, RobustNSSMEstimator):
+        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
+    for name, ref in (("reference_f", reference_f), ("reference_g", reference_g)):
+        if ref is not None and not isinstance(ref, nn.Module):
+            raise TypeError(
+                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
+            )
+    if noise is not None:
+        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
+    V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
+    if n_particles is not None:
+        V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
+    V.check_positive(n_jitter, "n_jitter", integer=True, minimum=0, inclusive=True)
+    V.check_positive(distill_iter, "distill_iter", integer=True, minimum=1, inclusive=True)
+    if not isinstance(return_info, (bool, np.bool_)):
+        raise TypeError(f"return_info must be True or False, got {return_info!r}")
+    f, g = estimator.f, estimator.g
+    for name, module in (("f", f), ("g", g)):
+        if not isinstance(module, nn.Module):
+            raise TypeError(f"estimator.{name} must be a torch.nn.Module, got {type(module).__name__}")
+    if estimator.x0_mean is None:
+        raise ValueError("estimator.x0_mean is required: it fixes the state dimension nx")
+    nx = int(np.asarray(estimator.x0_mean, dtype=np.float64).reshape(-1).size)
+    us, ys, multi = _records(u, y)
+    nu = us[0].shape[1]
+    seed = estimator.random_state if random_state is None else random_state
+
+    # 1. the reference model
+    if reference_f is not None:
+        ref_f, f_action = reference_f, "distilled" if _has_free_parameters(f) else "kept"
+    elif isinstance(f, GreyBoxTransition):
+        ref_f, f_action = copy.deepcopy(f.physical), "physical"
+    elif _cheap(f):
+        ref_f, f_action = f, "fitted"
+    else:
+        ref_f, f_action = LinearTransition(nx, nu, dtype=estimator.dtype), "distilled"
+    if reference_g is not None:
+        ref_g, g_action = reference_g, "distilled" if _has_free_parameters(g) else "kept"
+    elif isinstance(g, MLPObservation):
+        ref_g, g_action = _default_reference_g(nx, nu, ys), "distilled"
+    else:
+        ref_g, g_action = g, "fitted"
+    reference = clone(estimator).set_params(
+        f=ref_f,
+        g=ref_g,
+        noise=estimator.noise if noise is None else noise,
+        n_iter=n_iter,
+        n_particles=estimator.n_particles if n_particles is None else n_particles,
+        n_particles_final=None,
+        average_last=0,
+        n_init=1,
+        warm_start=False,
+        optimizer="lbfgs",
+        batch_size=None,
+        tol=0,
+        random_state=seed,
+        verbose=0,
+    )
+    reference.fit(u, y)
+
+    # 2. smoothed states: where the network must be right
+    sm = reference.smooth(u, y)
+    sms = sm if multi else [sm]
+    rng = np.random.default_rng(
+        None if seed is None or not isinstance(seed, (int, np.integer)) else int(seed)
+    )
+    Rw_diag = np.clip(np.diag(reference.Rw_), 0.0, None)
+    xs, xn, uu = [], [], []
+    for est_r, ur in zip(sms, us):
+        mean = est_r.mean
+        xs.append(mean[:-1])
+        xn.append(mean[1:])
+        uu.append(ur[:-1])
+    x_now, x_next, u_now = (np.concatenate(a, axis=0) for a in (xs, xn, uu))
+    spread = [np.sqrt(np.clip(np.diagonal(s.cov, axis1=-2, axis2=-1), 0.0, None) + Rw_diag) for s in sms]
+    rows_x = [np.concatenate([s.mean for s in sms], axis=0)]
+    rows_u = [np.concatenate(us, axis=0)]
+    for _ in range(n_jitter):
+        rows_x.append(
+            np.concatenate(
+                [s.mean + sd * rng.standard_normal(s.mean.shape) for s, sd in zip(sms, spread)], axis=0
+            )
+        )
+        rows_u.append(rows_u[0])
+    X, U = np.concatenate(rows_x, axis=0), np.concatenate(rows_u, axis=0)
+
+    # 3. the modules of the real fit
+    f_new = copy.deepcopy(f)
+    f_error: float | None = None
+    if f_action == "fitted":
+        f_new = copy.deepcopy(reference.f_)
+    elif f_action == "physical":
+        f_new.physical.load_state_dict(reference.f_.state_dict())
+        f_new.fit_normalisation(x_now, u_now, x_next=x_next)
+    elif f_action == "distilled":
+        if isinstance(f_new, (MLPTransition, GreyBoxTransition)):
+            f_new.fit_normalisation(x_now, u_now, x_next=x_next)
+        f_error = distill(f_new, reference.f_, X, U, baseline=X, max_iter=distill_iter)
+    g_new = copy.deepcopy(g)
+    g_error: float | None = None
+    if g_action == "fitted":
+        g_new = copy.deepcopy(reference.g_)
+    elif g_action == "distilled":
+        if isinstance(g_new, MLPObservation):
+            g_new.fit_normalisation(X, U if g_new.nu > 0 else None, y=np.concatenate(ys, axis=0))
+        g_error = distill(g_new, reference.g_, X, U, max_iter=distill_iter)
+
+    params: dict[str, Any] = dict(
+        f=f_new,
+        g=g_new,
+        x0_mean=reference.x0_mean_.copy(),
+        x0_cov=reference.x0_cov_.copy(),
+        Rw_init=reference.Rw_.copy(),
+        Rv_init=reference.Rv_.copy(),
+    )
+    if estimator.noise == "student-t" and math.isfinite(reference.dof_):
+        params["dof_init"] = float(reference.dof_)
+    warm = clone(estimator).set_params(**params)
+    if not return_info:
+        return warm
+    info = WarmStartInfo(
+        reference=reference,
+        f_error=f_error,
+        g_error=g_error,
+        f_action=f_action,
+        g_action=g_action,
+        n_rows=int(X.shape[0]),
+        seconds=time.perf_counter() - t0,
+    )
+    return warm, info
