@@ -59,7 +59,9 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
         import torch
 
         from torch_nssm.core.model import SequenceBatch, StateSpaceModel
-        from torch_nssm.estimation.estep import MStepOptions, e_step, m_step
+        from torch_nssm.core.noise import GaussianNoise
+        from torch_nssm.estimation.estep import EStepOptions, e_step
+        from torch_nssm.estimation.mstep import MStepOptions, m_step
         from torch_nssm.inference.smoothing import smoothed_moments
         from torch_nssm.models import PaperObservation, PaperTransition
 
@@ -75,19 +77,18 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
                 PaperTransition(0.9, 1.0).to(dev),
                 PaperObservation(1.0).to(dev),
                 t([[0.1]]),
-                t([[0.1]]),
-                t(float("inf")),
+                GaussianNoise(t([[0.1]])),
                 t([0.0]),
                 t([[1.0]]),
             )
 
         gen = torch.Generator(device=dev).manual_seed(seed)
-        e_step(model(), batch, 50, smoother=impl, generator=gen)  # warm-up (lazy imports)
+        e_step(model(), batch, EStepOptions(50, impl), gen)  # warm-up (lazy imports)
         base = _rss_mb()  # peak growth of a full-size E-step over this (the warm-up below included)
         if cuda:
             torch.cuda.reset_peak_memory_stats()
             base_gpu = torch.cuda.memory_allocated()
-        e_step(model(), batch, L, smoother=impl, generator=gen)  # warm-up at size (allocator, kernels)
+        e_step(model(), batch, EStepOptions(L, impl), gen)  # warm-up at size (allocator, kernels)
         t_e, spent = float("inf"), 0.0
         for i in range(REPEAT):
             if i > 0 and spent >= REPEAT_BUDGET_S:
@@ -95,14 +96,14 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
             gen.manual_seed(seed)  # the same filter particles for every smoother and pass
             sync()
             t0 = time.perf_counter()
-            est = e_step(model(), batch, L, smoother=impl, generator=gen)
+            est = e_step(model(), batch, EStepOptions(L, impl), gen)
             sync()
             dt = time.perf_counter() - t0
             t_e, spent = min(t_e, dt), spent + dt
         peak = (torch.cuda.max_memory_allocated() - base_gpu) / 2**20 if cuda else _rss_mb() - base
         m = model()
         t0 = time.perf_counter()
-        new = m_step(m, batch, est, MStepOptions(fit_dof=False))
+        new = m_step([m], batch, est, MStepOptions(fit_dof=False)).models[0]
         sync()
         t_m = time.perf_counter() - t0
         theta = [float(new.f.a.detach()), float(new.f.b.detach()), float(new.g.c.detach())]

@@ -129,7 +129,7 @@ def ffbsm(
         the states are centred on each step's filter mean before whitening, so the exponents
         carry no cancellation from large state values, and every statistic derived from the
         products is accumulated in the particles' dtype.  Relative rounding ~1e-7, far below the
-        Monte Carlo error ``O(1/sqrt(L))`` (tests/test_filter_smoother.py compares both).
+        Monte Carlo error ``O(1/sqrt(L))`` (tests/inference/test_filter_smoother.py compares both).
 
     Returns
     -------

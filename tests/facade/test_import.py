@@ -9,7 +9,7 @@ from pathlib import Path
 
 import torch_nssm
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def _run(code: str, *flags: str) -> subprocess.CompletedProcess:

@@ -18,7 +18,7 @@ import torch
 
 from torch_nssm import RobustNSSMEstimator
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "examples"))
 
 from silverbox import (  # noqa: E402

@@ -10,8 +10,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
-_REPO = Path(__file__).resolve().parent.parent
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
+_REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(autouse=True)
@@ -72,4 +72,4 @@ def test_stored_notebook_has_outputs():
 
 
 # The reproduction notebooks (one per experiment of the paper's Section 4) are tested in
-# tests/test_notebooks_reproduction.py.
+# tests/applications/test_notebooks_reproduction.py.

@@ -19,8 +19,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
-_REPO = Path(__file__).resolve().parent.parent
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
+_REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(autouse=True)
