@@ -470,6 +470,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             runs.append(run_em([start], data, self._em_options(desc), generator)[0])
             if runs[-1].interrupted:
                 break
+        if runs[-1].interrupted and runs[-1].estep is None and len(runs) == 1:
+            raise KeyboardInterrupt  # nothing was fitted yet
         ok = [run for run in runs if run.error is None and run.estep is not None]
         init_lls = np.array([run.log_likelihood if run.error is None else -np.inf for run in runs])
         y_1d = _is_1d(y, multi)
@@ -489,6 +491,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         best = max(ok, key=lambda run: run.log_likelihood)
         self._store_run(best, data, multi, warm, y_1d, init_lls)
+        message = self._rejection_message(best)
+        if message:
+            warnings.warn(message, RuntimeWarning, stacklevel=2)
         if best.interrupted:
             warnings.warn(
                 f"fit interrupted (KeyboardInterrupt) after {best.n_done} EM iterations: the fitted "
@@ -504,6 +509,35 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 stacklevel=2,
             )
         return self
+
+    def _rejection_message(self, run: EMResult) -> str | None:
+        """Words for the M-step updates that were undone in ``run`` (``None`` if none were)."""
+        parts = []
+        for label, module in (("f", run.model.f), ("g", run.model.g)):
+            flags = run.history.get(f"rejected.{label}", [])[1:]
+            n = int(np.sum(flags))
+            if n:
+                names = [name for name, p in module.named_parameters() if p.requires_grad]
+                shown = ", ".join(names[:6]) + (", ..." if len(names) > 6 else "")
+                kind = type(module).__name__
+                parts.append(f"{label} ({kind}: {shown}) at {n} of {len(flags)} iterations")
+        if not parts:
+            return None
+        if self.optimizer == "adam":
+            advice = (
+                f"lower learning_rate (now {self.learning_rate}), raise max_iter_mstep, or try "
+                "optimizer='lbfgs'"
+            )
+        else:
+            advice = (
+                "the weighted loss got worse or non-finite at every step tried: check that the module "
+                "returns finite values near the current parameters, or start from other values"
+            )
+        return (
+            "the M-step update was rejected (the step was undone and the parameters did not move) "
+            f"for {'; '.join(parts)}; history_['rejected.f'] / ['rejected.g'] mark the iterations. "
+            f"To fix: {advice}."
+        )
 
     def _store_run(self, run: EMResult, data, multi, warm: bool, y_1d: bool, init_lls) -> None:
         history = run.history
@@ -803,9 +837,11 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
         options.progress = f"robust EM x{n_sets}"
     results = run_em(models, all_data, options, estimator._generator(device), shared=False)
     n_unconverged = 0
+    n_rejected = 0
     for b, (est_b, run) in enumerate(zip(estimators, results)):
         if run.error is not None:
             warnings.warn(f"data set {b}: {run.error}", stacklevel=2)
+        n_rejected += est_b._rejection_message(run) is not None
         if run.estep is None:
             raise NumericalError(f"data set {b}: {run.error}")
         # the stored E-step is padded like the batch (lengths kept)
@@ -814,6 +850,14 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
             run.converged, y_1d=np.ndim(y[b]) == 1,
         )
         n_unconverged += not run.converged
+    if n_rejected:
+        messages = (e._rejection_message(r) for e, r in zip(estimators, results))
+        first = next(m for m in messages if m)
+        warnings.warn(
+            f"{n_rejected} of {n_sets} fits had rejected M-steps; the first: {first}",
+            RuntimeWarning,
+            stacklevel=2,
+        )
     if results and results[0].interrupted:
         warnings.warn(
             "fit_independent interrupted (KeyboardInterrupt): each fit holds its last completed iteration",

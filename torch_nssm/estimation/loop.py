@@ -81,7 +81,9 @@ class EMResult:
     estep : EStepOutput or None
         The E-step at ``model`` (``None`` if EM could not start).
     history : dict of str to list
-        Every parameter and the log-likelihood estimate at every iteration (index 0: the start).
+        Every parameter and the log-likelihood estimate at every iteration (index 0: the start),
+        and ``"rejected.f"``/``"rejected.g"``: whether the M-step leading to that iterate undid
+        that module's step (its loss got worse or non-finite).
     n_done : int
         Completed iterations.
     converged : bool
@@ -106,6 +108,10 @@ class EMResult:
 
 def record(history: dict, model: StateSpaceModel, log_likelihood: float) -> None:
     """Append the model's parameters and the log-likelihood estimate to ``history``."""
+    for label in ("f", "g"):  # whether the M-step that led here undid that module's step
+        rejected = history[f"rejected.{label}"]
+        if len(rejected) < len(history["log_likelihood"]) + 1:
+            rejected.append(False)
     history["log_likelihood"].append(log_likelihood)
     for label, module in (("f", model.f), ("g", model.g)):
         for name, p in module.named_parameters():
@@ -243,10 +249,12 @@ def run_em(
                 sub_data, sub_est = batch.data.select(sel), est.select(sel)
             result = m_step([models[g] for g in ids], sub_data, sub_est, options.mstep, shared=shared)
             still = []
-            for g, new, error in zip(ids, result.models, result.errors):
+            for g, new, error, report in zip(ids, result.models, result.errors, result.reports):
                 if error is not None:
                     errors[g] = f"EM stopped at iteration {it + 1}: {error}"
                     continue
+                for label in ("f", "g"):  # index it + 1: the iterate this M-step produced
+                    histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
                 models[g] = new
                 still.append(g)
             if still:
@@ -281,6 +289,9 @@ def run_em(
             batch_est, j = last[g]
             est = batch_est if shared else batch_est.select(slice(j, j + 1))
         history = dict(histories[g])
+        for label in ("f", "g"):  # an interrupt or error can leave a flag without its iterate
+            key = f"rejected.{label}"
+            history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
         results.append(EMResult(models[g], est, history, n_done[g], done[g], errors[g], interrupted))
     return results
 

@@ -21,6 +21,7 @@ squares, batched over groups; any other module gets a gradient solver
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -83,7 +84,8 @@ class MStepOptions:
 @dataclass
 class MStepResult:
     """The updated model of each group, and per group the reason its update was refused (``None``
-    where it is valid; a refused group keeps its previous model) and the modules' solver reports."""
+    where it is valid; a refused group keeps its previous model) and the solver's report of ``f``
+    and of ``g`` (``rejected``: that module's step was undone, its parameters did not move)."""
 
     models: list[StateSpaceModel]
     errors: list[str | None]
@@ -201,12 +203,15 @@ def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, T
 
 
 # ---------------------------------------------------------------------- regressions
-def _closed_form(modules: list[LinearInParameters], problem: Regression, groups: _Groups) -> None:
-    """Set each group's module to its weighted least-squares solution (non-finite: unchanged)."""
+def _closed_form(
+    modules: list[LinearInParameters], problem: Regression, groups: _Groups
+) -> list[SolverReport]:
+    """Set each group's module to its weighted least-squares solution; a solve that is not finite
+    leaves the module unchanged and is reported as rejected."""
     template = modules[0]
     free = template.free_mask()
     if not bool(free.any()):
-        return
+        return [SolverReport(math.nan, math.nan) for _ in modules]
     thetas = torch.stack([m.theta().detach() for m in modules])  # (G, P)
     G, h = linear_normal_equations(
         template, groups.per_sequence(thetas), problem.x, problem.u, problem.target, problem.weight,
@@ -214,19 +219,22 @@ def _closed_form(modules: list[LinearInParameters], problem: Regression, groups:
     )
     G, h = groups.pool(G), groups.pool(h)
     sol = solve_normal_equations(G, h).reshape(groups.n, -1)
+    reports = []
     for module, theta, s in zip(modules, thetas, sol):
-        if bool(torch.isfinite(s).all()):
+        finite = bool(torch.isfinite(s).all())
+        if finite:
             new = theta.clone()
             new[free] = s
             module.set_theta(new)
+        reports.append(SolverReport(math.nan, math.nan, rejected=not finite))
+    return reports
 
 
 def _update_modules(
     modules: list[nn.Module], problem: Regression, groups: _Groups, options: MStepOptions
-) -> list[SolverReport | None]:
+) -> list[SolverReport]:
     if _is_linear(modules):
-        _closed_form(modules, problem, groups)
-        return [None] * len(modules)
+        return _closed_form(modules, problem, groups)
     return [
         fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, options.solver)
         for g, m in enumerate(modules)
@@ -395,7 +403,7 @@ def m_step(
     ):
         candidate = replace(model, Rw=Rw_g, noise=noise_g, x0_mean=m0, x0_cov=c0)
         error = _check(candidate)
-        reports.append({k: r for k, r in (("f", reports_f[g]), ("g", reports_g[g])) if r is not None})
+        reports.append({"f": reports_f[g], "g": reports_g[g]})
         if error is not None:
             model.f.load_state_dict(backups[g][0])
             model.g.load_state_dict(backups[g][1])

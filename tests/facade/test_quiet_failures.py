@@ -1,0 +1,113 @@
+"""A fit that goes wrong says so (issue #12): rejected M-steps, Ctrl-C, contradictory settings."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+import torch_nssm.estimation.loop as loop_module
+from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm.datasets import make_paper_example
+from torch_nssm.models import PaperObservation, PaperTransition
+
+DTYPE = torch.float64
+
+
+class NaNAbove(nn.Module):
+    """``a x + b u``, NaN once ``a`` exceeds 0.75: every step towards the optimum a = 0.9 fails."""
+
+    def __init__(self):
+        super().__init__()
+        self.a = nn.Parameter(torch.tensor(0.5, dtype=DTYPE))
+        self.b = nn.Parameter(torch.tensor(0.5, dtype=DTYPE))
+
+    def forward(self, x, u):
+        out = self.a * x + self.b * u
+        return torch.where(self.a > 0.75, torch.full_like(out, math.nan), out)
+
+
+@pytest.fixture(scope="module")
+def data():
+    return make_paper_example(n_samples=150, outlier_fraction=0.05, random_state=0)
+
+
+def _est(f=None, **kw):
+    params = dict(x0_mean=[0.0], n_particles=40, n_iter=6, random_state=0, tol=0)
+    params.update(kw)
+    f = f if f is not None else PaperTransition(0.5, 0.5)
+    return RobustNSSMEstimator(f, PaperObservation(0.5), **params)
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam"])
+def test_rejected_m_steps_are_reported_and_recorded(data, optimizer):
+    expected = r"rejected .* f \(NaNAbove: a, b\) at \d+ of 6 iterations"
+    with pytest.warns(RuntimeWarning, match=expected) as rec:
+        est = _est(NaNAbove(), optimizer=optimizer, learning_rate=0.5).fit(data.u, data.y)
+    message = str(next(w.message for w in rec if "rejected" in str(w.message)))
+    assert ("learning_rate" in message) == (optimizer == "adam")
+    flags = est.history_["rejected.f"]
+    assert flags.shape == est.history_["log_likelihood"].shape and not flags[0]
+    assert flags[1:].sum() >= 1 and not est.history_["rejected.g"].any()
+    # where the step was rejected, f's parameters stayed where they were
+    a = est.history_["f.a"]
+    for k in np.flatnonzero(flags):
+        assert a[k] == a[k - 1]
+
+
+def test_no_rejection_warning_on_a_healthy_fit(data):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        est = _est().fit(data.u, data.y)
+    assert not est.history_["rejected.f"].any() and not est.history_["rejected.g"].any()
+
+
+def test_fit_independent_reports_rejections(data):
+    sets = [make_paper_example(n_samples=120, random_state=s) for s in (1, 2)]
+    with pytest.warns(RuntimeWarning, match="2 of 2 fits had rejected M-steps"):
+        fits = fit_independent(_est(NaNAbove()), [d.u for d in sets], [d.y for d in sets])
+    assert all(f.history_["rejected.f"][1:].any() for f in fits)
+
+
+def test_ctrl_c_keeps_the_last_completed_iteration(data, monkeypatch):
+    """A KeyboardInterrupt in the middle of a fit: the estimator is fitted with the last completed
+    iteration, a warning says so, and the interrupt does not propagate (the notebook keeps going)."""
+    real = loop_module.e_step
+    calls = {"n": 0}
+
+    def interrupting(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 4:  # the E-step after the third M-step
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop_module, "e_step", interrupting)
+    with pytest.warns(RuntimeWarning, match=r"interrupted .* after 2 EM iterations"):
+        est = _est(n_iter=20).fit(data.u, data.y)
+    assert est.n_iter_ == 2 and not est.converged_
+    assert len(est.history_["f.a"]) == 3 and len(est.history_["rejected.f"]) == 3
+    # the fitted values are the last completed iterate, not the interrupted M-step's
+    assert est.f_.a.item() == pytest.approx(est.history_["f.a"][-1], rel=0, abs=0)
+    assert np.isfinite(est.log_likelihood_) and est.outlier_weights_.shape == (150,)
+
+
+def test_ctrl_c_in_the_first_e_step_propagates(data, monkeypatch):
+    """Nothing was fitted yet: the interrupt propagates and the estimator stays unfitted."""
+
+    def interrupting(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(loop_module, "e_step", interrupting)
+    est = _est()
+    with pytest.raises(KeyboardInterrupt):
+        est.fit(data.u, data.y)
+    assert not hasattr(est, "f_")
+
+
+def test_infinite_dof_with_student_t_is_refused(data):
+    with pytest.raises(ValueError, match=r"dof_init must be positive and finite .* noise='gaussian'"):
+        _est(dof_init=math.inf).fit(data.u, data.y)
