@@ -23,6 +23,7 @@ from torch import nn
 
 from . import _validation as V
 from ._stats import robust_scale
+from ._threads import limited_threads, with_thread_limit
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
@@ -156,6 +157,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Seed of the particle methods and of the restarts.  With an int, every call (``fit``,
         ``smooth``, ``predict(..., horizon=k)``, ``simulate``...) is reproducible; the methods
         also take their own ``random_state``.
+    n_threads : int or None, default=1
+        CPU threads of torch (and of the BLAS/OpenMP pools) while ``fit``, ``predict``, ``score``,
+        ``smooth``, ``filter``, ``simulate`` and ``log_likelihood`` run; the caller's settings are
+        restored afterwards.  The filter's per-step kernels are small: one thread is the fast
+        choice on most machines (measured: ``benchmarks/threads.py``).  ``None`` leaves torch's
+        setting alone (e.g. a GPU fit, or FFBSm with thousands of particles on an idle machine).
     device : str or torch.device, default="cpu"
         Where the filter, smoother and M-step run (``"cuda"`` for a GPU: the data, ``f``, ``g`` and
         the random numbers live there; fitted attributes come back as NumPy arrays and pickled
@@ -237,6 +244,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         chunk_size: int | None = None,
         smoother_options: dict | None = None,
         random_state=None,
+        n_threads: int | None = 1,
         device="cpu",
         dtype: torch.dtype = torch.float64,
         verbose: int = 0,
@@ -272,6 +280,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.chunk_size = chunk_size
         self.smoother_options = smoother_options
         self.random_state = random_state
+        self.n_threads = n_threads
         self.device = device
         self.dtype = dtype
         self.verbose = verbose
@@ -338,6 +347,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                     f"(its options: {list(allowed)})"
                 )
         V.check_dtype(self.dtype)
+        if self.n_threads is not None:
+            V.check_positive(self.n_threads, "n_threads", integer=True, minimum=1, inclusive=True)
         if self.x0_mean is None:
             raise ValueError("x0_mean is required: it fixes the state dimension nx")
         for name in ("f", "g"):
@@ -429,6 +440,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         )
 
     # ------------------------------------------------------------------ fitting
+    @with_thread_limit
     def fit(self, u, y) -> RobustNSSMEstimator:
         """Estimate the model's parameters by robust EM.
 
@@ -620,6 +632,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         if y is None:
             raise ValueError(f"horizon={horizon} needs the measured outputs y")
 
+    @with_thread_limit
     def predict(self, u, y=None, *, horizon: int | None = None, random_state=None):
         """Predicted outputs: the free-run simulation, or k-step-ahead predictions given ``y``.
 
@@ -650,6 +663,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         data, multi = self._batch(u, y, device, fitted=True, require_y=horizon is not None)
         return self._outputs(self._predictions(data, horizon, random_state, device), data, multi)
 
+    @with_thread_limit
     def score(self, u, y, sample_weight=None, *, horizon: int | None = None, random_state=None):
         """Coefficient of determination R² of :meth:`predict` (scikit-learn's regressor score).
 
@@ -697,6 +711,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             scores.append(r2_score(yt[m, j], yp[m, j], sample_weight=w))
         return float(np.mean(scores))
 
+    @with_thread_limit
     def simulate(self, u, n_samples: int = 1, random_state=None):
         """Sample state and output trajectories from the fitted model, noise included.
 
@@ -755,6 +770,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         return out if multi else out[0]
 
+    @with_thread_limit
     def smooth(self, u, y, *, return_particles: bool = False, random_state=None):
         """Smoothed state distribution ``p(x_k | y_{0:N-1})`` at the fitted parameters.
 
@@ -775,6 +791,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         """
         return self._state_estimates(u, y, "smoother", return_particles, random_state)
 
+    @with_thread_limit
     def filter(self, u, y, *, return_particles: bool = False, random_state=None):
         """Filtered state distribution ``p(x_k | y_{0:k})`` at the fitted parameters.
 
@@ -783,6 +800,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         """
         return self._state_estimates(u, y, "filter", return_particles, random_state)
 
+    @with_thread_limit
     def log_likelihood(self, u, y, *, random_state=None) -> float:
         """Particle estimate of ``log p(y | u)`` at the fitted parameters (summed over records)."""
         device = self._check_fitted()
@@ -835,7 +853,8 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
         options.progress = None
     elif options.progress is None:
         options.progress = f"robust EM x{n_sets}"
-    results = run_em(models, all_data, options, estimator._generator(device), shared=False)
+    with limited_threads(estimator.n_threads):
+        results = run_em(models, all_data, options, estimator._generator(device), shared=False)
     n_unconverged = 0
     n_rejected = 0
     for b, (est_b, run) in enumerate(zip(estimators, results)):

@@ -111,3 +111,32 @@ def test_ctrl_c_in_the_first_e_step_propagates(data, monkeypatch):
 def test_infinite_dof_with_student_t_is_refused(data):
     with pytest.raises(ValueError, match=r"dof_init must be positive and finite .* noise='gaussian'"):
         _est(dof_init=math.inf).fit(data.u, data.y)
+
+
+def test_thread_policy_applies_during_calls_and_restores(data, monkeypatch):
+    """``n_threads`` (default 1) holds while fit/predict/smooth run; the caller's setting is back
+    afterwards (a 2-core machine ran a fit ~20x slower with torch's default pool)."""
+    real = loop_module.e_step
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop_module, "e_step", spy)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        est = _est(n_iter=2).fit(data.u, data.y)
+        assert set(seen) == {1} and torch.get_num_threads() == 2
+        est.smooth(data.u, data.y)
+        est.predict(data.u)
+        assert torch.get_num_threads() == 2
+        seen.clear()
+        est.set_params(n_threads=None).fit(data.u, data.y)
+        assert set(seen) == {2}
+        with pytest.raises(ValueError, match="n_threads must be a positive integer"):
+            est.set_params(n_threads=0).fit(data.u, data.y)
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)
