@@ -35,6 +35,7 @@ from .inference.filtering import NumericalError, particle_filter
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.results import StateEstimate
 from .inference.smoothing import SMOOTHERS, smoothed_moments, smoother_options
+from .metrics import robust_r2_score
 
 __all__ = ["RobustNSSMEstimator", "fit_independent"]
 
@@ -292,6 +293,50 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         tags.regressor_tags.poor_score = True  # a free-run simulation is not fitted to each row
         return tags
 
+    # ------------------------------------------------------------------ scikit-learn parameters
+    def get_params(self, deep: bool = True) -> dict:
+        """The estimator's parameters; with ``deep``, also the initial values of ``f``'s and ``g``'s
+        parameters as ``f__<name>`` / ``g__<name>`` (floats or arrays), for ``set_params``,
+        ``GridSearchCV`` and ``clone``."""
+        params = super().get_params(deep=False)
+        if deep:
+            for label in ("f", "g"):
+                module = params.get(label)
+                if isinstance(module, nn.Module):
+                    for name, p in module.named_parameters():
+                        value = p.detach().cpu().numpy().copy()
+                        params[f"{label}__{name}"] = float(value) if value.ndim == 0 else value
+        return params
+
+    def set_params(self, **params) -> RobustNSSMEstimator:
+        """Set parameters; ``f__a=0.3`` sets the initial value of ``f``'s parameter ``a`` (on a copy
+        of ``f``: the module passed in is not changed)."""
+        nested = {k: params.pop(k) for k in list(params) if k.startswith(("f__", "g__"))}
+        super().set_params(**params)
+        copied = set()
+        for key, value in nested.items():
+            label, name = key.split("__", 1)
+            module = getattr(self, label)
+            if not isinstance(module, nn.Module):
+                raise ValueError(f"Invalid parameter {key!r}: {label} is not a torch.nn.Module")
+            if label not in copied:
+                module = copy.deepcopy(module)
+                setattr(self, label, module)
+                copied.add(label)
+            named = dict(module.named_parameters())
+            if name not in named:
+                raise ValueError(f"Invalid parameter {key!r}: {label} has parameters {sorted(named)}")
+            target = named[name]
+            try:
+                new = torch.as_tensor(np.asarray(value, dtype=float), dtype=target.dtype).to(target.device)
+                new = new.expand_as(target) if new.dim() == 0 else new.reshape(target.shape)
+            except (TypeError, ValueError, RuntimeError) as exc:
+                shape = tuple(target.shape)
+                raise ValueError(f"{key} must be a number or an array of shape {shape}") from exc
+            with torch.no_grad():
+                target.copy_(new)
+        return self
+
     def __getstate__(self):
         state = super().__getstate__()
         for name in ("f_", "g_"):  # save the fitted modules on the CPU: they load anywhere
@@ -384,6 +429,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             Rv = V.check_covariance(self.Rv_init, "Rv_init", p, **kw)
         f = copy.deepcopy(self.f).to(**kw)
         g = copy.deepcopy(self.g).to(**kw)
+        _check_data_against_model(data, f, g, nu, p)
         V.check_module_shapes(f, g, nx, nu, p, **kw)
         noise = get_noise_model(self.noise).initial(Rv, float(self.dof_init))
         return StateSpaceModel(f, g, Rw, noise, x0_mean, x0_cov)
@@ -664,14 +710,18 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         return self._outputs(self._predictions(data, horizon, random_state, device), data, multi)
 
     @with_thread_limit
-    def score(self, u, y, sample_weight=None, *, horizon: int | None = None, random_state=None):
+    def score(
+        self, u, y, sample_weight=None, *, horizon: int | None = None, robust: bool = False, random_state=None
+    ):
         """Coefficient of determination R² of :meth:`predict` (scikit-learn's regressor score).
 
         ``1 - SS_res / SS_tot`` per output column over the observed (non-NaN) samples of all
         records pooled, then the uniform average over the outputs (scikit-learn's
         ``r2_score(..., multioutput="uniform_average")``).  By default it scores the free-run
         simulation ``predict(u)``, the demanding test of a dynamic model; ``horizon=k`` scores
-        the ``k``-step-ahead predictions instead.
+        the ``k``-step-ahead predictions instead.  R² is the default (scikit-learn's convention);
+        outliers in ``y`` dominate it: ``robust=True`` gives
+        :func:`torch_nssm.metrics.robust_r2_score` (``scoring=robust_r2_scorer`` in model selection).
 
         Parameters
         ----------
@@ -681,6 +731,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             Weights of the samples (one record only).
         horizon : int, optional
             See :meth:`predict`.
+        robust : bool, default=False
+            Score with robust scales instead of variances (no ``sample_weight``).
         random_state : int, optional
             Seed for ``horizon``.
 
@@ -689,6 +741,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         float
         """
         device = self._check_fitted()
+        if robust and sample_weight is not None:
+            raise ValueError("sample_weight is not supported with robust=True")
         if horizon is not None:
             self._check_horizon(horizon, y)
         data, multi = self._batch(u, y, device, fitted=True)
@@ -704,6 +758,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 raise ValueError(
                     f"sample_weight must have {yt.shape[0]} entries (one per sample), got {sw.shape[0]}"
                 )
+        if robust:
+            return robust_r2_score(yt, yp)
         scores = []
         for j in range(yt.shape[1]):
             m = ~np.isnan(yt[:, j])
@@ -919,6 +975,34 @@ def default_rv_init(y: np.ndarray) -> torch.Tensor:
     s2 = robust_scale(y, axis=0) ** 2
     var = np.where(s2 > 0, s2, np.nanvar(y, axis=0))
     return torch.from_numpy(0.02 * np.where(var > 0, var, 1.0))
+
+
+def _check_data_against_model(data: SequenceBatch, f: nn.Module, g: nn.Module, nu: int, p: int) -> None:
+    """Contradictions between the data and the model that would fit nonsense without a word."""
+    for label, module in (("f", f), ("g", g)):
+        declared = getattr(module, "nu", None)
+        if isinstance(declared, int) and declared != nu:
+            raise ValueError(
+                f"u has {nu} input column(s) but {label} ({type(module).__name__}) declares nu={declared}: "
+                "pass the inputs the module was built for"
+            )
+    y = data.y
+    for j in range(p):
+        col = y[..., j][~torch.isnan(y[..., j])]
+        if col.numel() > 1 and bool((col == col[0]).all()):
+            raise ValueError(
+                f"y{'' if p == 1 else f'[:, {j}]'} is constant ({float(col[0]):g} at every observed sample): "
+                "there is nothing to identify"
+            )
+    n_obs = int(data.obs_mask.any(-1).sum())
+    n_free = sum(int(q.numel()) for m in (f, g) for q in m.parameters() if q.requires_grad)
+    if n_obs < 10 * max(n_free, 1):
+        warnings.warn(
+            f"only {n_obs} observed samples for {n_free} free parameters of f and g (plus the noise "
+            "parameters): the estimates will be poorly determined; use a longer record",
+            UserWarning,
+            stacklevel=4,
+        )
 
 
 def _is_1d(y, multi: bool) -> bool:

@@ -386,6 +386,7 @@ def test_numerical_error_when_weights_underflow():
     """Gaussian noise with a tiny scale and huge outputs: every particle weight underflows."""
     u = np.zeros(30)
     y = np.full(30, 1e200)
+    y[::2] = 2e200  # not constant (a constant y is refused before any work)
     est = RobustNSSMEstimator(
         PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], noise="gaussian",
         Rv_init=1e-200, n_particles=20, n_iter=3, random_state=0,

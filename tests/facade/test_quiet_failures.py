@@ -140,3 +140,59 @@ def test_thread_policy_applies_during_calls_and_restores(data, monkeypatch):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(before)
+
+
+def test_nested_parameters_for_search_and_clone(data):
+    """``g__c`` and ``f__a`` are parameters: set_params, clone and GridSearchCV reach the initial
+    values of f's and g's parameters, without changing the modules the user passed in."""
+    from sklearn.base import clone
+    from sklearn.model_selection import GridSearchCV
+
+    g = PaperObservation(0.5)
+    est = RobustNSSMEstimator(PaperTransition(0.5, 0.5), g, x0_mean=[0.0], n_particles=30, n_iter=2)
+    params = est.get_params()
+    assert params["g__c"] == 0.5 and params["f__a"] == 0.5 and "f__b" in params
+    est.set_params(g__c=0.8, f__a=0.7)
+    assert est.g.c.item() == 0.8 and est.f.a.item() == 0.7 and g.c.item() == 0.5
+    assert clone(est).get_params()["g__c"] == 0.8
+    with pytest.raises(ValueError, match=r"Invalid parameter 'g__d': g has parameters \['c'\]"):
+        est.set_params(g__d=1.0)
+    sets = [make_paper_example(n_samples=100, random_state=s) for s in range(4)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        search = GridSearchCV(est, {"g__c": [0.3, 0.8]}, cv=2).fit([d.u for d in sets], [d.y for d in sets])
+    assert search.best_params_["g__c"] in (0.3, 0.8)
+
+
+def test_robust_score_is_not_ruled_by_outliers():
+    """R² (the default) against y with glitches is dominated by them; robust=True is not."""
+    from torch_nssm.metrics import robust_r2_score, robust_r2_scorer
+
+    rng = np.random.default_rng(0)
+    y = rng.standard_normal(4000)
+    pred = y + 0.5 * rng.standard_normal(4000)  # R² = 0.8 on clean data
+    glitchy = y.copy()
+    glitchy[::20] += 50.0
+    from sklearn.metrics import r2_score
+
+    assert robust_r2_score(y, pred) == pytest.approx(r2_score(y, pred), abs=0.05)
+    assert r2_score(glitchy, pred) < 0.2 < 0.6 < robust_r2_score(glitchy, pred)
+    assert callable(robust_r2_scorer)
+    data = make_paper_example(n_samples=200, outlier_fraction=0.1, random_state=3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = _est(n_iter=5).fit(data.u, data.y)
+    assert est.score(data.u, data.y, robust=True) > est.score(data.u, data.y)
+
+
+def test_data_that_contradicts_the_model(data):
+    from torch_nssm.neural import MLPTransition
+
+    u2 = np.column_stack([data.u, data.u])
+    f = MLPTransition(nx=1, nu=1, hidden=(4,))
+    with pytest.raises(ValueError, match=r"u has 2 input column\(s\) but f \(MLPTransition\) declares nu=1"):
+        _est(f).fit(u2, data.y)
+    with pytest.raises(ValueError, match=r"y is constant \(3 at every observed sample\)"):
+        _est().fit(data.u, np.full(150, 3.0))
+    with pytest.warns(UserWarning, match=r"only 4 observed samples for 3 free parameters"):
+        _est(n_iter=1).fit(data.u[:4], data.y[:4])

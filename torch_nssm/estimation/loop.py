@@ -271,7 +271,11 @@ def run_em(
             bar.update(1)
             if shared and active:
                 ll = float(last[0][0].log_likelihood.sum())
-                bar.set_postfix(loglik=f"{ll / max(n_obs[0], 1):.4f}/obs")
+                postfix = {"loglik": f"{ll / max(n_obs[0], 1):.4f}/obs"}
+                dof = getattr(models[0].noise, "dof", None)
+                if dof is not None and dof.dim() == 0:
+                    postfix["dof"] = f"{float(dof):.3g}"
+                bar.set_postfix(postfix)
     except KeyboardInterrupt:
         # Ctrl-C: every group keeps its last completed iteration (an interrupted M-step is undone)
         interrupted = True
