@@ -34,7 +34,8 @@ from .inference import prediction
 from .inference.filtering import NumericalError, particle_filter
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.results import StateEstimate
-from .inference.smoothing import SMOOTHERS, smoothed_moments, smoother_options
+from .inference.smoothers import SMOOTHERS, smoother_options
+from .inference.smoothing import smoothed_moments
 from .metrics import robust_r2_score
 
 __all__ = ["RobustNSSMEstimator", "fit_independent"]

@@ -12,7 +12,8 @@ from torch import Tensor
 from .._ops import time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import FilterOutput, particle_filter
-from ..inference.smoothing import SmootherOutput, get_smoother
+from ..inference.smoothers import get_smoother
+from ..inference.smoothing import SmootherOutput
 
 __all__ = ["EStepOutput", "EStepOptions", "e_step", "latent_scales", "outlier_weights"]
 

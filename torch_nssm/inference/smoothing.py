@@ -29,9 +29,7 @@ drawn exactly (``O(L)`` each).  The trajectories yield the same statistics as FF
 
 from __future__ import annotations
 
-import inspect
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 from torch import Tensor
@@ -41,7 +39,7 @@ from ..core.model import SequenceBatch, StateSpaceModel
 from .filtering import FilterOutput
 from .resampling import cumulative_weights, inverse_cdf
 
-__all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT", "SMOOTHERS", "get_smoother"]
+__all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT"]
 
 #: Smoothing weights below this are set to zero: products of such weights are denormal numbers,
 #: which slow CPU mat-vecs about 17x (NOTES §7), and they carry no information.
@@ -536,41 +534,3 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
 
 
 #: The smoothers of the E-step, by name.
-def _mcmc(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutput, **options) -> SmootherOutput:
-    """:func:`ffbsi` with Metropolis-Hastings backward moves (``method="mcmc"``)."""
-    return ffbsi(model, data, filt, method="mcmc", **options)
-
-
-def _rejection(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutput, **options) -> SmootherOutput:
-    """:func:`ffbsi` with rejection sampling and an exact fallback (``method="reject"``)."""
-    return ffbsi(model, data, filt, method="reject", **options)
-
-
-Smoother = Callable[..., SmootherOutput]
-
-#: The estimator's ``smoother=`` choices: ``smoother(model, data, filt, **options)``; the options
-#: (``smoother_options=``) are the keyword arguments of the function (``generator`` is passed to
-#: those that take it).
-SMOOTHERS: dict[str, Smoother] = {
-    "ffbsm": ffbsm,
-    "ffbsi": _rejection,
-    "mcmc": _mcmc,
-}
-
-#: Options of each smoother that the estimator sets itself.
-_RESERVED = ("model", "data", "filt", "generator", "method")
-
-
-def smoother_options(name: str) -> tuple[str, ...]:
-    """The keyword options a user may pass to smoother ``name``."""
-    fn = ffbsi if name in ("ffbsi", "mcmc") else get_smoother(name)
-    params = inspect.signature(fn).parameters.values()
-    return tuple(p.name for p in params if p.kind is p.KEYWORD_ONLY and p.name not in _RESERVED)
-
-
-def get_smoother(name: str) -> Smoother:
-    """The smoother registered as ``name``."""
-    try:
-        return SMOOTHERS[name]
-    except KeyError:
-        raise ValueError(f"smoother must be one of {sorted(SMOOTHERS)}, got {name!r}") from None
