@@ -3,7 +3,7 @@
 Every measurement runs in its own subprocess (so that peak memory is that configuration's own,
 read as the growth of the resident set over the process's state after imports), on the same data
 (the paper's Section 4.1 model, ``peers.simulate_41``, Gaussian measurement noise so that every
-library computes the same thing), with one torch thread (NOTES §7: with many small per-step
+library computes the same thing), with one torch thread (docs/method.md §7: with many small per-step
 kernels two threads on two cores are slower; measured here in the table's ``threads`` column when
 ``--threads 2`` is given).
 

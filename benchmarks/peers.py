@@ -1,6 +1,6 @@
 """Timing functions for the *peer* libraries that torch_nssm's E-step is compared against.
 
-Model (paper §4.1, see shared/method/NOTES.md §6 and §7 for the time convention)::
+Model (paper §4.1, see docs/method.md §6 and §7 for the time convention)::
 
     x_0 ~ N(x0_mean, x0_var)                      (default N(0, 1))
     x_{k+1} = a x_k + b u_k + w_k,   w_k ~ N(0, Rw)
@@ -25,7 +25,7 @@ Peers (see benchmarks/README_peers.md for versions, install command and measured
   fall-back to 'full'), ``'mcmc'`` (Metropolis-Hastings FFBSi, R=30 steps by default) and
   ``'ancestor'`` (filter genealogy only; no backward pass).
 * ``numpy-ffbsm``: not a peer but a reference: a plain numpy bootstrap filter + the exact
-  marginal FFBSm of NOTES §3 (O(N·L²)), vectorised per time step. It gives a low-variance
+  marginal FFBSm of docs/method.md §3 (O(N·L²)), vectorised per time step. It gives a low-variance
   smoothed mean to check the peers against, and a "naive numpy" time.
 
 Every runner has the signature ``fn(u, y, params=None (TRUE_PARAMS), L=100, seed=0, *, M=None,
@@ -418,7 +418,7 @@ def pyparticleest_mcmc(u, y, params=None, L=100, seed=0, **kw) -> dict[str, Any]
 
 
 # --------------------------------------------------------------------------------------------
-# reference: plain numpy PF + exact marginal FFBSm (NOTES §3), not a peer
+# reference: plain numpy PF + exact marginal FFBSm (docs/method.md §3), not a peer
 # --------------------------------------------------------------------------------------------
 def _logsumexp(a: np.ndarray, axis: int) -> np.ndarray:
     m = np.max(a, axis=axis, keepdims=True)
@@ -469,12 +469,12 @@ def numpy_ffbsm(
         mean[N - 1] = Ws @ X[N - 1]
         for k in range(N - 2, -1, -1):
             # backward kernel K[i, j] = softmax_i(log W_k^i - (x_{k+1}^j - f_k^i)^2 / (2 Rw));
-            # the x_{k+1}^j-only term cancels, leaving a rank-1 cross term (NOTES §7)
+            # the x_{k+1}^j-only term cancels, leaving a rank-1 cross term (docs/method.md §7)
             f = a * X[k] + b * u[k]
             z = np.multiply.outer(f / Rw, X[k + 1])
             z += (logW[k] - (0.5 / Rw) * f * f)[:, None]
             z -= z.max(axis=0, keepdims=True)
-            np.maximum(z, -700.0, out=z)  # avoid denormal exp (NOTES §7)
+            np.maximum(z, -700.0, out=z)  # avoid denormal exp (docs/method.md §7)
             np.exp(z, out=z)
             Ws = z @ (Ws / z.sum(axis=0))
             mean[k] = Ws @ X[k]

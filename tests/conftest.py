@@ -23,7 +23,7 @@ def _single_thread():
 
     The engine runs many small per-step kernels.  On a 2-core machine that is busy with anything
     else, torch's intra-op thread pool makes them 100-300x slower (measured: a 30-step filter took
-    0.01 s CPU with 1 thread and 1.3 s with 2 threads while the other core was loaded; NOTES §7).
+    0.01 s CPU with 1 thread and 1.3 s with 2 threads while the other core was loaded; docs/method.md §7).
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -1,6 +1,6 @@
 """Exact float64 references for the engine tests: a Kalman filter and an RTS smoother.
 
-Model (the engine's time convention, NOTES §7)::
+Model (the engine's time convention, docs/method.md §7)::
 
     x_{k+1} = A x_k + B u_k + w,   w ~ N(0, Q)
     y_k     = C x_k + D u_k + v,   v ~ N(0, R)
@@ -9,7 +9,7 @@ Model (the engine's time convention, NOTES §7)::
 NaN components of ``y_k`` are missing: the update uses the observed components only (an
 all-missing sample is skipped).  Everything is plain numpy, written independently of the engine.
 
-:func:`pairwise_smoother` is the FFBSm backward recursion of NOTES §3 written literally, with the
+:func:`pairwise_smoother` is the FFBSm backward recursion of docs/method.md §3 written literally, with the
 full ``L x L`` pairwise weights, for checking the engine's smoother and M-step statistics.
 """
 
@@ -132,7 +132,7 @@ def simulate_linear(A, B, C, D, Q, R, m0, P0, u, rng: np.random.Generator):
 
 
 def pairwise_smoother(f, Rw, u, lengths, particles, log_weights):
-    """FFBSm with explicit pairwise weights (NOTES §3), per sequence, in numpy float64.
+    """FFBSm with explicit pairwise weights (docs/method.md §3), per sequence, in numpy float64.
 
     Parameters
     ----------

@@ -1,6 +1,7 @@
 """Command line: ``python -m torch_nssm`` fits the paper's Section 4.1 example and prints the result.
 
 ``python -m torch_nssm [demo] [--n-samples N] [--particles L] [--iterations K] [--seed S] [--gaussian]``
+(the options may also come before ``demo``)
 
 ``python -m torch_nssm reproduce {fig2,gopaluni,table1,manipulator,all} [--fast] [--out DIR] [--seed S]``
 regenerates the figures and tables of the paper's Section 4 (see :mod:`torch_nssm.reproduce`).
@@ -14,7 +15,7 @@ import warnings
 
 import numpy as np
 
-__all__ = ["main", "run_demo", "run_reproduce", "build_parser"]
+__all__ = ["main", "run_demo", "run_reproduce", "build_parser", "parse_args"]
 
 
 def _demo_parser(sub) -> None:
@@ -31,7 +32,7 @@ def _reproduce_parser(sub) -> None:
     )
     p.add_argument("--fast", action="store_true", help="tiny settings (seconds), e.g. for CI")
     p.add_argument("--out", default="reproduction", help="output folder (default: ./reproduction)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the data and the particle methods")
+    _seed_arg(p)
 
 
 def run_reproduce(experiment: str, fast: bool = False, out: str = "reproduction", seed: int = 0) -> dict:
@@ -54,21 +55,77 @@ def run_reproduce(experiment: str, fast: bool = False, out: str = "reproduction"
     return results
 
 
-def _demo_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--n-samples", type=int, default=500, help="record length N (paper: 500)")
-    p.add_argument("--outliers", type=float, default=0.1, help="fraction of outliers (paper: 0.1)")
-    p.add_argument("--particles", type=int, default=150, help="number of particles L")
-    p.add_argument("--iterations", type=int, default=60, help="maximum EM iterations")
-    p.add_argument("--seed", type=int, default=0, help="seed of the data and of the particle methods")
+#: Defaults of the demo's options.  The options are accepted before and after the subcommand
+#: (``--iterations 2 demo`` and ``demo --iterations 2``), so the parsers themselves give no
+#: defaults (``argparse.SUPPRESS``: a subcommand's default would overwrite a value given before
+#: it) and :func:`parse_args` fills them in.
+DEMO_DEFAULTS = dict(
+    n_samples=500, outliers=0.1, particles=150, iterations=60, seed=0, gaussian=False, threads=1
+)
+
+
+def _integer(minimum: int):
+    """An argparse ``type``: an integer ``>= minimum`` (a usage error otherwise)."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+
+    parse.__name__ = f"integer >= {minimum}"
+    return parse
+
+
+def _fraction(text: str) -> float:
+    """An argparse ``type``: a number in ``[0, 1)``."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 <= value < 1.0:
+        raise argparse.ArgumentTypeError(f"must lie in [0, 1), got {text}")
+    return value
+
+
+def _seed_arg(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--gaussian", action="store_true", help="also fit the Gaussian-noise baseline for comparison"
+        "--seed",
+        type=_integer(0),
+        default=argparse.SUPPRESS,
+        help="seed of the data and of the particle methods (default 0)",
+    )
+
+
+def _demo_args(p: argparse.ArgumentParser) -> None:
+    S = argparse.SUPPRESS
+    p.add_argument(
+        "--n-samples", type=_integer(2), default=S, help="record length N (default and paper: 500)"
+    )
+    p.add_argument(
+        "--outliers",
+        type=_fraction,
+        default=S,
+        help="fraction of outliers in [0, 1) (default and paper: 0.1)",
+    )
+    p.add_argument("--particles", type=_integer(2), default=S, help="number of particles L (default 150)")
+    p.add_argument("--iterations", type=_integer(0), default=S, help="maximum EM iterations (default 60)")
+    _seed_arg(p)
+    p.add_argument(
+        "--gaussian",
+        action="store_true",
+        default=S,
+        help="also fit the Gaussian-noise baseline for comparison",
     )
     p.add_argument(
         "--threads",
-        type=int,
-        default=1,
-        help="torch CPU threads (default 1: the per-step kernels are small, and on a busy 2-core "
-        "machine two threads were measured 100x slower)",
+        type=_integer(1),
+        default=S,
+        help="torch CPU threads while the demo runs (default 1: the per-step kernels are small, and "
+        "on a busy 2-core machine two threads were measured 100x slower)",
     )
 
 
@@ -161,7 +218,11 @@ def run_demo(
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``python -m torch_nssm`` (``demo``, the default, and ``reproduce``)."""
+    """The argument parser of ``python -m torch_nssm`` (``demo``, the default, and ``reproduce``).
+
+    The demo's options (and ``--seed``) may come before or after the subcommand; they have no
+    defaults here: :func:`parse_args` checks and completes the namespace.
+    """
     parser = argparse.ArgumentParser(
         prog="python -m torch_nssm",
         description="Robust identification of nonlinear state-space models (Liu & Yang 2019).",
@@ -173,21 +234,44 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    """Parse the command line: a usage message and exit code 2 for anything wrong.
+
+    Options of the demo given with ``reproduce`` are refused (they would have no effect);
+    options not given take the values of :data:`DEMO_DEFAULTS`.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command == "reproduce":
+        ignored = [k for k in DEMO_DEFAULTS if k != "seed" and hasattr(args, k)]
+        if ignored:
+            names = ", ".join("--" + k.replace("_", "-") for k in ignored)
+            parser.error(f"{names}: option(s) of the demo, not of reproduce")
+    for key, value in DEMO_DEFAULTS.items():
+        if not hasattr(args, key):
+            setattr(args, key, value)
+    return args
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``python -m torch_nssm``."""
-    args = build_parser().parse_args(argv)
-    import torch
-
-    torch.set_num_threads(max(1, args.threads))
+    args = parse_args(argv)
     if args.command == "reproduce":
         run_reproduce(args.experiment, fast=args.fast, out=args.out, seed=args.seed)
         return 0
-    run_demo(
-        n_samples=args.n_samples,
-        outliers=args.outliers,
-        particles=args.particles,
-        iterations=args.iterations,
-        seed=args.seed,
-        gaussian=args.gaussian,
-    )
+    import torch
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(args.threads)
+    try:
+        run_demo(
+            n_samples=args.n_samples,
+            outliers=args.outliers,
+            particles=args.particles,
+            iterations=args.iterations,
+            seed=args.seed,
+            gaussian=args.gaussian,
+        )
+    finally:
+        torch.set_num_threads(threads)
     return 0

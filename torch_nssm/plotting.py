@@ -59,6 +59,39 @@ def _series(name: str, values: np.ndarray) -> list[tuple[str, tuple, np.ndarray]
     return out
 
 
+def _match_true_values(true_values, params: list[str], history) -> dict:
+    """``true_values`` keyed by the plotted names they belong to (see :func:`plot_history`)."""
+    true_values = dict(true_values or {})
+    typos = [k for k in true_values if str(k).startswith(("f.", "g.")) and k not in history]
+    if typos:
+        raise ValueError(
+            f"true_values has {typos}, which are not in the history; available: {sorted(history)}"
+        )
+    matched = {}
+    for key, value in true_values.items():
+        if key in params:
+            name = key
+        elif key in history:
+            continue  # a history entry that is not plotted (x0_mean, log_likelihood, ...)
+        else:
+            owners = [p for p in params if p.startswith(("f.", "g.")) and p[2:] == key]
+            if len(owners) > 1:
+                raise ValueError(
+                    f"true_values[{key!r}] is ambiguous among the plotted params {owners}: "
+                    "give the qualified name"
+                )
+            if not owners or owners[0] in true_values:
+                continue  # a setting of the data (noise, outlier_fraction, ...) or given qualified
+            name = owners[0]
+        try:
+            arr = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"true_values[{key!r}] must be numeric, got {value!r}") from None
+        if np.all(np.isfinite(arr)):
+            matched[name] = arr
+    return matched
+
+
 def plot_history(est, params=None, true_values=None, ax=None):
     """Parameter estimates over the EM iterations (the paper's Figs. 2 and 10).
 
@@ -73,7 +106,12 @@ def plot_history(est, params=None, true_values=None, ax=None):
         of ``Rw``, ``Rv``, ``x0_cov``).
     true_values : dict, optional
         ``{name: value}`` drawn as dashed horizontal lines in the colour of the estimate
-        (``value`` shaped like the entry, or a scalar).
+        (``value`` shaped like the entry, or a scalar).  ``name`` is a key of ``history_``
+        (``"f.a"``, ``"Rv"``) or a plain parameter name (``"a"``) when exactly one plotted
+        ``f.``/``g.`` parameter has it, so a simulation's ``data.params`` can be passed as it is.
+        Entries that name no plotted parameter (settings such as ``noise``, or parameters left
+        out by ``params``) and non-finite values (``dof=inf`` of Gaussian noise) are skipped;
+        a qualified ``f.``/``g.`` name that is not in the history raises ``ValueError``.
     ax : matplotlib Axes or sequence of Axes, optional
         ``None``: a new figure with one panel per parameter.  One Axes: every trajectory on it
         (with a legend).  A sequence of Axes: one per parameter.
@@ -94,10 +132,7 @@ def plot_history(est, params=None, true_values=None, ax=None):
         raise ValueError(f"params {unknown} not in the history; available: {sorted(history)}")
     if not params:
         raise ValueError("params is empty: nothing to plot")
-    true_values = dict(true_values or {})
-    bad = [k for k in true_values if k not in params]
-    if bad:
-        raise ValueError(f"true_values has {bad}, which are not among the plotted params {params}")
+    true_values = _match_true_values(true_values, params, history)
     single = ax is not None and not isinstance(ax, (Sequence, np.ndarray))
     if ax is None:
         plt = _pyplot()

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from torch_nssm import reproduce
 from torch_nssm.cli import build_parser, main
@@ -22,6 +23,28 @@ def test_fast_experiment_writes_files(name, tmp_path):
     assert (tmp_path / f"{name}_settings.json").exists()
     assert res["settings"]["fast"] is True
     assert "|" in res["table"]
+
+
+def test_reproduce_restores_the_callers_thread_count(tmp_path, monkeypatch):
+    """The experiments run single-threaded, then leave torch's thread setting as they found it."""
+    from torch_nssm import RobustNSSMEstimator
+
+    seen = []
+    fit = RobustNSSMEstimator.fit
+
+    def spy(self, *args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return fit(self, *args, **kwargs)
+
+    monkeypatch.setattr(RobustNSSMEstimator, "fit", spy)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        reproduce.fig2(fast=True, out_dir=tmp_path, progress=False)
+        assert seen == [1]  # one thread while fitting
+        assert torch.get_num_threads() == 2  # the caller's setting afterwards
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_table1_fast_numbers(tmp_path):

@@ -244,7 +244,7 @@ def test_wls_recovers_manipulator_theta():
     f = _fit_f(ManipulatorTransition(0.5, 0.5), d0)
     assert f.theta1.item() == pytest.approx(0.9, abs=1e-8)
     assert f.theta2.item() == pytest.approx(1.15, abs=1e-8)
-    # noisy, with the Rw^-1 metric of the M-step (NOTES §4-5)
+    # noisy, with the Rw^-1 metric of the M-step (docs/method.md §4-5)
     d = make_manipulator(random_state=6)
     prec = torch.linalg.inv(_t(d.params["Rw"]))
     f = ManipulatorTransition(0.5, 0.5)

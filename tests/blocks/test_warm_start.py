@@ -82,6 +82,38 @@ def test_linear_transition_closed_form_recovers_matrices():
     torch.testing.assert_close(g(x, u), y)
 
 
+def test_linear_observation_offset_can_be_held_fixed(data):
+    gen = torch.Generator().manual_seed(2)
+    x = torch.randn(200, 2, generator=gen, dtype=DTYPE)
+    u = torch.randn(200, 1, generator=gen, dtype=DTYPE)
+    y = x[:, :1] * 2.0 + 1.0
+    w = torch.ones(200, dtype=DTYPE)
+    g = LinearObservation(2, 1, 1, fit_offset=False)
+    assert not g.d.requires_grad and g.C.requires_grad
+    assert "fit_offset=False" in repr(g)
+    g.solve_weighted_least_squares(x, u, y, w)
+    assert g.d.item() == 0.0  # held, the rest fitted: C[0, 0] absorbs what it can
+    g = LinearObservation(2, 1, 1, d=0.25, fit_offset=False)
+    g.solve_weighted_least_squares(x, u, y, w)
+    assert g.d.item() == 0.25
+    g = LinearObservation(2, 1, 1)  # default: the offset is estimated
+    g.solve_weighted_least_squares(x, u, y, w)
+    torch.testing.assert_close(g.d.detach(), torch.tensor([1.0], dtype=DTYPE))
+    # through an EM fit: the fitted copy keeps d = 0, the default moves it
+    y_shifted = data.y[:120] + 2.0
+    fitted = {}
+    for fit_offset in (False, True):
+        est = RobustNSSMEstimator(
+            LinearTransition(1, 1), LinearObservation(1, 1, 1, fit_offset=fit_offset), x0_mean=[0.0],
+            n_particles=20, n_iter=2, tol=0, random_state=0,
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fitted[fit_offset] = est.fit(data.u[:120], y_shifted).g_
+    assert fitted[False].d.item() == 0.0 and not fitted[False].d.requires_grad
+    assert fitted[True].d.item() != 0.0
+
+
 def test_linear_modules_reject_bad_shapes():
     with pytest.raises(ValueError, match="A must have shape"):
         LinearTransition(2, 1, A=np.ones((3, 3)))

@@ -36,6 +36,43 @@ def test_import_emits_no_warning():
     assert res.stderr == ""
 
 
+def test_importing_the_package_and_its_modules_emits_no_warning():
+    code = (
+        "import torch_nssm, torch_nssm.estimator, torch_nssm.plotting, torch_nssm.datasets, "
+        "torch_nssm.models, torch_nssm.neural, torch_nssm.warm_start, torch_nssm.cli, "
+        "torch_nssm.reproduce"
+    )
+    res = _run(code, "-W", "error")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == ""
+
+
+def test_no_tqdm_auto_unless_progress_is_shown():
+    """``tqdm.auto`` warns (TqdmWarning) when imported in a notebook without ipywidgets: it is
+    imported only when a progress bar is shown (``verbose > 0``, ``progress=True``)."""
+    code = (
+        "import json, sys, warnings\n"
+        "import torch_nssm, torch_nssm.estimator, torch_nssm.reproduce\n"
+        "from torch_nssm import RobustNSSMEstimator\n"
+        "from torch_nssm.datasets import make_paper_example\n"
+        "from torch_nssm.models import PaperObservation, PaperTransition\n"
+        "warnings.simplefilter('ignore')\n"
+        "d = make_paper_example(n_samples=40, random_state=0)\n"
+        "RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0], n_particles=10,\n"
+        "                    n_iter=1, verbose=0).fit(d.u, d.y)\n"
+        "auto = lambda: [m for m in ('tqdm.auto', 'tqdm.autonotebook') if m in sys.modules]\n"
+        "quiet = auto()\n"
+        "RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0], n_particles=10,\n"
+        "                    n_iter=1, verbose=1).fit(d.u, d.y)\n"
+        "print(json.dumps([quiet, auto()]))\n"
+    )
+    res = _run(code)
+    assert res.returncode == 0, res.stderr
+    quiet, shown = json.loads(res.stdout.strip().splitlines()[-1])
+    assert quiet == []
+    assert shown  # the check itself sees tqdm.auto once a bar is shown
+
+
 def test_public_names_resolve():
     code = (
         "import torch_nssm; "

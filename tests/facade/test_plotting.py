@@ -65,6 +65,23 @@ def test_plot_history_on_one_axes_and_a_dict(fit):
     assert list(out) == list(axs)
 
 
+def _truth_lines(ax) -> list[float]:
+    return [ln.get_ydata()[0] for ln in ax.get_lines() if ln.get_label().endswith("(true)")]
+
+
+def test_plot_history_takes_a_simulation_params_dict(fit):
+    """The README's ``plot_history(est, true_values=data.params)``: plain names ``a``, ``c`` go to
+    ``f.a``, ``g.c``; settings (``noise``, ``x0_mean``, ...) and ``dof = inf`` are skipped."""
+    est, data, _ = fit
+    assert {"a", "b", "c", "noise", "x0_mean", "outlier_range"} <= set(data.params)
+    axes = plot_history(est, true_values=data.params)
+    truths = {a.get_title(): _truth_lines(a) for a in axes}
+    assert truths == {"f.a": [0.9], "f.b": [1.0], "g.c": [1.0], "Rw": [0.1], "Rv": [0.1], "dof": []}
+    # a parameter left out of params is skipped, and a qualified name wins over a plain one
+    axes = plot_history(est, params=["f.a"], true_values={"g.c": 1.0, "a": 0.5, "f.a": 0.9})
+    assert _truth_lines(axes[0]) == [0.9]
+
+
 def test_plot_history_matrix_entries():
     history = {
         "Rv": np.array([np.eye(2), 2 * np.eye(2), 3 * np.eye(2)]),
@@ -83,8 +100,12 @@ def test_plot_history_errors(fit):
     est, _, _ = fit
     with pytest.raises(ValueError, match=r"params \['f.z'\] not in the history"):
         plot_history(est, params=["f.z"])
-    with pytest.raises(ValueError, match="true_values has"):
-        plot_history(est, params=["f.a"], true_values={"g.c": 1.0})
+    with pytest.raises(ValueError, match=r"true_values has \['f.z'\], which are not in the history"):
+        plot_history(est, true_values={"f.z": 1.0})  # a qualified name that is not there: a typo
+    with pytest.raises(ValueError, match="ambiguous"):
+        plot_history({"f.c": np.zeros(3), "g.c": np.ones(3)}, true_values={"c": 1.0})
+    with pytest.raises(ValueError, match="must be numeric"):
+        plot_history(est, true_values={"a": "0.9x"})
     with pytest.raises(NotFittedError):
         plot_history(RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0]))
 

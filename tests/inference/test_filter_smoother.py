@@ -3,7 +3,7 @@
 * linear-Gaussian system: the Kalman filter / RTS smoother of ``reference.py`` (checked itself
   against the batch Gaussian formulas), with independent particle runs as the batch dimension;
 * Student-t weights recomputed with scipy from the filter's own particles;
-* the FFBSm recursion recomputed from NOTES §3 with the full ``L x L`` pairwise weights;
+* the FFBSm recursion recomputed from docs/method.md §3 with the full ``L x L`` pairwise weights;
 * padding of sequences of different lengths.
 """
 
@@ -383,7 +383,7 @@ def test_ffbsm_next_mean_and_scatter(ffbsm_case):
 
 def test_ffbsm_process_scatter_identity(ffbsm_case):
     """sum_ij W^{ij} (x^j - f^i)(x^j - f^i)^T
-    = bracket + sum_i s^i (xbar^i - f^i)(xbar^i - f^i)^T (NOTES §7)."""
+    = bracket + sum_i s^i (xbar^i - f^i)(xbar^i - f^i)^T (docs/method.md §7)."""
     model, data, filt, smooth, ref = ffbsm_case
     for b, (_, pairs) in enumerate(ref):
         direct = 0.0

@@ -115,6 +115,9 @@ class LinearObservation(LinearInParameters):
         Initial offset; default zeros.
     feedthrough : bool, default=False
         Estimate ``D`` (otherwise it is held fixed at its initial value).
+    fit_offset : bool, default=True
+        Estimate ``d``; ``False`` holds it at its initial value (zero by default), e.g. for
+        outputs known to be centred.
     dtype : torch.dtype, default=torch.float64
     device : torch.device or str, optional
     """
@@ -129,6 +132,7 @@ class LinearObservation(LinearInParameters):
         D: ArrayLike = None,
         d: ArrayLike = None,
         feedthrough: bool = False,
+        fit_offset: bool = True,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str | None = None,
     ) -> None:
@@ -142,7 +146,7 @@ class LinearObservation(LinearInParameters):
             _matrix(D, (p, nu), "D", np.zeros((p, nu)), **kw), requires_grad=bool(feedthrough)
         )
         off = np.zeros(p) if d is None else V.check_vector_array(d, "d", p)
-        self.d = nn.Parameter(torch.as_tensor(off, **kw))
+        self.d = nn.Parameter(torch.as_tensor(off, **kw), requires_grad=bool(fit_offset))
 
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., p, P)`` over ``(C, D, d)`` and a zero offset ``(..., p)``."""
@@ -152,4 +156,7 @@ class LinearObservation(LinearInParameters):
         return Phi, x.new_zeros(*x.shape[:-1], self.p)
 
     def extra_repr(self) -> str:
-        return f"nx={self.nx}, nu={self.nu}, p={self.p}"
+        return (
+            f"nx={self.nx}, nu={self.nu}, p={self.p}, feedthrough={self.D.requires_grad}, "
+            f"fit_offset={self.d.requires_grad}"
+        )

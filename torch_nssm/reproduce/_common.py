@@ -6,6 +6,7 @@ import csv
 import json
 import time
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -92,6 +93,32 @@ def _pyplot():
 
     return plt
 
+
+@contextmanager
+def torch_threads(n: int = 1):
+    """Run with ``n`` torch CPU threads and restore the caller's setting afterwards.
+
+    The experiments run many small per-step kernels, for which one thread is the fastest on a
+    shared CPU; the caller's thread count is theirs to keep.  Also a decorator.
+    """
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _progress(iterable, desc: str, progress: bool):
+    """``iterable`` with a progress bar when asked; ``tqdm.auto`` (which warns in a notebook
+    without ipywidgets) is imported only then."""
+    if not progress:
+        return iterable
+    from tqdm.auto import tqdm
+
+    return tqdm(iterable, desc=desc)
 
 
 def _fit(est: RobustNSSMEstimator, u, y) -> tuple[RobustNSSMEstimator, float]:

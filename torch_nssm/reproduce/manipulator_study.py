@@ -7,8 +7,6 @@ import math
 import time
 
 import numpy as np
-import torch
-from tqdm.auto import tqdm
 
 from ..datasets import SimulatedData, make_manipulator, manipulator_transition_matrix
 from ..estimator import RobustNSSMEstimator
@@ -18,11 +16,13 @@ from ._common import (
     _fit,
     _iterations_to,
     _out,
+    _progress,
     _pyplot,
     _savefig,
     _scalar,
     _write_settings,
     _write_table,
+    torch_threads,
 )
 
 __all__ = ["manipulator", "manipulator_estimator", "manipulator_kalman_mle", "MANIPULATOR_INIT"]
@@ -136,6 +136,7 @@ def manipulator_kalman_mle(data: SimulatedData, drop_outliers: bool = True) -> d
     return dict(theta=(float(x[0]), float(x[1])), se=(float(se[0]), float(se[1])))
 
 
+@torch_threads(1)
 def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bool = True) -> dict:
     """Section 4.2: two-link manipulator at 5, 10, 20 and 40% outliers (Table 2, Figs. 10-12).
 
@@ -159,7 +160,6 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
         fraction: the exact Kalman MLE of :func:`manipulator_kalman_mle`, ``theta`` and ``se``),
         ``table``, ``files``, ``settings``, ``seconds``.
     """
-    torch.set_num_threads(1)
     out = _out(out_dir)
     s = (
         dict(
@@ -189,7 +189,7 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
     )
     fits, theta, err, rows, datas, oracle = {}, {}, {}, [], {}, {}
     t_start = time.perf_counter()
-    for frac in tqdm(levels, desc="manipulator fits", disable=not progress):
+    for frac in _progress(levels, "manipulator fits", progress):
         data = make_manipulator(n_samples=s["n_samples"], outlier_fraction=frac, random_state=seed)
         datas[frac] = data
         est = manipulator_estimator(

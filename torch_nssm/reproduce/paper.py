@@ -8,7 +8,6 @@ import warnings
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 
 from ..datasets import make_gopaluni_example, make_huang_example, make_paper_example
 from ..estimator import RobustNSSMEstimator, fit_independent
@@ -19,11 +18,13 @@ from ._common import (
     _fit,
     _iterations_to,
     _out,
+    _progress,
     _pyplot,
     _savefig,
     _scalar,
     _write_settings,
     _write_table,
+    torch_threads,
 )
 
 __all__ = ["fig2", "gopaluni", "table1"]
@@ -49,6 +50,7 @@ def _paper_estimator(noise: str, n_particles: int, n_iter: int, seed: int, **kw)
 # --------------------------------------------------------------------------------------------
 
 
+@torch_threads(1)
 def fig2(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bool = True) -> dict:
     """Section 4.1, Fig. 2: parameter trajectories of the robust EM (10% outliers in [-5, 5]).
 
@@ -69,7 +71,6 @@ def fig2(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bo
     dict
         ``estimator``, ``data``, ``table`` (Markdown), ``files``, ``settings``, ``seconds``.
     """
-    torch.set_num_threads(1)
     out = _out(out_dir)
     s = (
         dict(n_samples=150, n_iter=10, n_particles=50, n_particles_final=None, average_last=0)
@@ -156,6 +157,7 @@ def fig2(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bo
 # --------------------------------------------------------------------------------------------
 
 
+@torch_threads(1)
 def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress: bool = True) -> dict:
     """Figs. 4 and 6: Gaussian particle EM (Gopaluni 2008) vs robust EM, 0% and 5% outliers.
 
@@ -174,7 +176,6 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
     dict
         ``fits`` (``{(fraction, noise): estimator}``), ``table``, ``files``, ``settings``, ``seconds``.
     """
-    torch.set_num_threads(1)
     out = _out(out_dir)
     s = (
         dict(n_samples=150, n_iter=8, n_particles=50, average_last=0)
@@ -194,7 +195,7 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
     fits, secs_all, rows = {}, {}, []
     jobs = [(frac, noise) for frac in (0.0, 0.05) for noise in ("gaussian", "student-t")]
     t_start = time.perf_counter()
-    for frac, noise in tqdm(jobs, desc="gopaluni fits", disable=not progress):
+    for frac, noise in _progress(jobs, "gopaluni fits", progress):
         data = make_gopaluni_example(n_samples=s["n_samples"], outlier_fraction=frac, random_state=seed)
         est = _paper_estimator(noise, s["n_particles"], s["n_iter"], seed, average_last=s["average_last"])
         est, secs = _fit(est, data.u, data.y)
@@ -252,6 +253,7 @@ def gopaluni(fast: bool = False, out_dir="reproduction", seed: int = 0, progress
 # --------------------------------------------------------------------------------------------
 
 
+@torch_threads(1)
 def table1(
     fast: bool = False,
     out_dir="reproduction",
@@ -288,7 +290,6 @@ def table1(
         iterates averaged) and ``iterations_to_target`` (the iteration from which it stays
         <= 0.010, None if it ends above); ``table``, ``files``, ``settings``, ``seconds``.
     """
-    torch.set_num_threads(1)
     out = _out(out_dir)
     s = (
         dict(n_sets=4, n_samples=300, n_iter=6, n_particles=50, n_avg=3)

@@ -1,0 +1,72 @@
+"""The README's Python examples run as written (with a few EM iterations), in order, in one namespace.
+
+Only the sizes are shrunk (``n_iter``, ``n_particles``, ``max_iter_mstep`` and the warm start's
+reference fit), so the README and the code cannot drift apart unnoticed.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import warnings
+from pathlib import Path
+
+import matplotlib
+import torch
+
+import torch_nssm
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+#: (pattern, replacement): small settings for the test, everything else as written
+SHRINK = [
+    (r"\bn_iter=\d+", "n_iter=2"),
+    (r"\bn_particles=\d+", "n_particles=20"),
+    (r"\bmax_iter_mstep=\d+", "max_iter_mstep=5"),
+]
+
+
+def python_blocks(text: str) -> list[str]:
+    """The contents of the README's ```python fenced blocks, in order."""
+    return re.findall(r"^```python\n(.*?)^```", text, flags=re.S | re.M)
+
+
+def shrink(code: str) -> str:
+    for pattern, repl in SHRINK:
+        code = re.sub(pattern, repl, code)
+    return code
+
+
+def test_readme_has_the_examples():
+    text = README.read_text()
+    blocks = python_blocks(text)
+    assert len(blocks) >= 2
+    assert any("plot_history(est, true_values=data.params)" in b for b in blocks)
+    # the idiom for a fitted scalar without the requires-grad UserWarning is documented
+    assert any("est.f_.a.item()" in b for b in blocks)
+    assert all(shrink(b) != b for b in blocks if ".fit(" in b)  # every fit is shrunk
+
+
+def test_readme_python_blocks_run(monkeypatch):
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from torch_nssm.blocks import warm_start as ws
+
+    # the warm start's reference fit and distillation, shrunk like the fits above
+    small = functools.partial(ws.warm_start_estimator, n_iter=2, distill_iter=10)
+    monkeypatch.setattr(torch_nssm, "warm_start_estimator", small, raising=False)
+    namespace: dict = {"__name__": "readme"}
+    n_threads = torch.get_num_threads()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # ConvergenceWarning after 2 iterations is expected
+            # ... but reading a fitted scalar the README's way must not warn about requires_grad
+            warnings.filterwarnings("error", message=".*requires_grad")
+            for i, block in enumerate(python_blocks(README.read_text())):
+                exec(compile(shrink(block), f"README.md python block {i}", "exec"), namespace)
+    finally:
+        plt.close("all")
+    assert torch.get_num_threads() == n_threads
+    assert isinstance(namespace["a_hat"], float)
+    assert hasattr(namespace["est"], "f_")  # the warm-started estimator was fitted
