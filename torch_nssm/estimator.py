@@ -74,7 +74,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Initial measurement-noise scale matrix.  If omitted: ``0.02 * diag(s^2)`` with ``s`` a
         robust (median absolute deviation) spread of each output, so that outliers do not
         inflate it.  Starting with a small measurement noise makes the first E-steps follow the
-        data; a large start can let the fit settle where ``g`` explains nothing (NOTES §7).
+        data; a large start can let the fit settle where ``g`` explains nothing (docs/method.md §7).
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise.
     noise : {"student-t", "gaussian", "student-t-per-output"}, default="student-t"
@@ -121,7 +121,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (1.0: two thirds of the
         starts within a factor 0.37-2.7 of the given values).  On the paper's example started
-        at ``a = b = c = 0.2`` (where EM sticks at ``c -> 0``, NOTES §7), 4 runs of 30
+        at ``a = b = c = 0.2`` (where EM sticks at ``c -> 0``, docs/method.md §7), 4 runs of 30
         iterations with 0.5 all stayed stuck; with 1.0 one run left the bad basin.
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters

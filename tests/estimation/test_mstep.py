@@ -106,7 +106,7 @@ def linear_estep():
 
 @pytest.mark.parametrize("theta", ["e-step", "perturbed"])
 def test_process_noise_update_equals_pairwise_formula(nonlinear_estep, theta):
-    """Rw = 1/(N-1) sum_k sum_ij W^{ij} (x^j - f^i)(x^j - f^i)^T, at any theta_f (NOTES §5, §7)."""
+    """Rw = 1/(N-1) sum_k sum_ij W^{ij} (x^j - f^i)(x^j - f^i)^T, at any theta_f (docs/method.md §5, §7)."""
     model, data, est = nonlinear_estep
     f = model.f if theta == "e-step" else NonlinearF(a=0.6, b=1.3, c=-0.2)
     filt = est.filter
@@ -124,7 +124,7 @@ def test_process_noise_update_equals_pairwise_formula(nonlinear_estep, theta):
     direct /= sum(n - 1 for n in data.lengths.tolist())
     Rw = process_noise_update([f], transition_regression(model.Rw, data, est), est, data)
     np.testing.assert_allclose(Rw.numpy(), direct, rtol=1e-7)
-    # dropping the theta-free bracket would underestimate Rw (the bug NOTES §7 warns about)
+    # dropping the theta-free bracket would underestimate Rw (the bug docs/method.md §7 warns about)
     assert np.all(
         np.linalg.eigvalsh(
             direct
@@ -392,7 +392,7 @@ def test_dof_update_gaussian_data_hits_upper_bound():
 
 
 def test_latent_scales_with_missing_components(linear_estep):
-    """<lam> and <log lam> of every particle use the observed components only (NOTES §1)."""
+    """<lam> and <log lam> of every particle use the observed components only (docs/method.md §1)."""
     sysm, model, data, est = linear_estep
     T, B, L, _ = est.filter.particles.shape
     nu = float(model.noise.dof)

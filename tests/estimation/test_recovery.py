@@ -88,7 +88,7 @@ def test_outlier_weights_separate_injected_outliers(paper_data, robust_fit):
     mask = paper_data.outlier_mask
     assert ow.shape == (500,)
     assert np.median(ow[mask]) < 0.2 < 0.9 < np.median(ow[~mask])
-    # Outliers smaller than the noise cannot be told apart (NOTES §7): judge the large ones.
+    # Outliers smaller than the noise cannot be told apart (docs/method.md §7): judge the large ones.
     # With dof ~ 1.5 a regular 2-sigma sample already gets a weight near 0.5, so flag at 0.2.
     big = mask & (np.abs(paper_data.y - paper_data.y_clean)[:, 0] > 1.5)
     assert (ow[big] < 0.2).mean() > 0.9

@@ -7,8 +7,6 @@ import re
 import shlex
 from pathlib import Path
 
-import pytest
-
 from torch_nssm import RobustNSSMEstimator
 from torch_nssm.cli import parse_args
 from torch_nssm.models import PaperObservation, PaperTransition
@@ -17,18 +15,9 @@ REPO = Path(__file__).resolve().parents[2]
 README = (REPO / "README.md").read_text()
 TOP_DIRS = ("torch_nssm", "examples", "notebooks", "docs", "benchmarks", "tests")
 
-#: Files that still cite the old "NOTES §n" and are owned by another change right now; they are
+#: Files that still cite the old "docs/method.md §n" and are owned by another change right now; they are
 #: to cite "docs/method.md §n" like the rest (remove each from this list once it does).
-PENDING_NOTES = {
-    "torch_nssm/estimator.py",
-    "torch_nssm/core/model.py",
-    "torch_nssm/core/parametric.py",
-    "torch_nssm/inference/filtering.py",
-    "torch_nssm/inference/prediction.py",
-    "torch_nssm/inference/smoothing.py",
-    "tests/estimation/test_mstep.py",
-    "tests/estimation/test_recovery.py",
-}
+PENDING_NOTES: set[str] = set()  # files still citing the old NOTES file (none)
 
 
 def _code_spans(text: str) -> list[str]:
@@ -128,7 +117,3 @@ def test_method_notes_are_cited_as_docs_method_md():
     assert not stale, f"files still cite NOTES: {stale}"
     assert not bad, f"citations of sections that docs/method.md does not have: {bad}"
 
-
-@pytest.mark.parametrize("path", sorted(PENDING_NOTES))
-def test_pending_notes_files_exist(path):
-    assert (REPO / path).exists()

@@ -1,6 +1,6 @@
 """The state-space model and the batch of sequences the algorithms run on.
 
-Time convention (NOTES §7): sample ``k`` has input ``u_k`` and output ``y_k``; ``y_k`` observes
+Time convention (docs/method.md §7): sample ``k`` has input ``u_k`` and output ``y_k``; ``y_k`` observes
 ``x_k``; the mean of ``x_{k+1}`` is ``f(x_k, u_k)``; ``x0_mean``/``x0_cov`` are the prior of the
 first state, the one ``y_0`` observes.
 

@@ -2,7 +2,7 @@
 
 Many physical models are affine in their unknowns: the paper's ``f = a x + b u`` and
 ``g = c cos(x)``, or a discretised mechanical system whose stiffness entries are unknown.  For them
-the weighted least-squares problems of the M-step (paper eqs. 44-45, 48; NOTES §4) have closed-form
+the weighted least-squares problems of the M-step (paper eqs. 44-45, 48; docs/method.md §4) have closed-form
 solutions, which the EM engine uses instead of a gradient optimiser.
 """
 

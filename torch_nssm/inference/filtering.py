@@ -1,7 +1,7 @@
 """Bootstrap particle filter, batched over sequences, for any measurement-noise family.
 
 All weights stay in the log domain.  The filter keeps every time step's particles and normalised
-weights (before resampling), which is what the smoothers need (NOTES §2-3).
+weights (before resampling), which is what the smoothers need (docs/method.md §2-3).
 """
 
 from __future__ import annotations

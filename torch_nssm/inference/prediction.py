@@ -1,6 +1,6 @@
 """Prediction and simulation with a state-space model: free run, k-step-ahead, sampled trajectories.
 
-Time convention (NOTES §7): ``y_k`` observes ``x_k`` and the mean of ``x_{k+1}`` is
+Time convention (docs/method.md §7): ``y_k`` observes ``x_k`` and the mean of ``x_{k+1}`` is
 ``f(x_k, u_k)``.  All functions work on time-major batches ``(T, B, ...)`` of padded sequences (see
 :class:`~torch_nssm.core.model.SequenceBatch`); values past a sequence's end are meaningless and are cut
 off by the caller.

@@ -1,4 +1,4 @@
-"""Particle smoothers producing the sufficient statistics of the EM M-step (NOTES §3-4).
+"""Particle smoothers producing the sufficient statistics of the EM M-step (docs/method.md §3-4).
 
 The exact forward-filtering backward-smoothing (FFBSm) recursion uses the full ``L x L`` pairwise
 weights (not the paper's diagonal eq. 24), but never stores them: with ``C = chol(Q)``,
@@ -42,7 +42,7 @@ from .resampling import cumulative_weights, inverse_cdf
 __all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT"]
 
 #: Smoothing weights below this are set to zero: products of such weights are denormal numbers,
-#: which slow CPU mat-vecs about 17x (NOTES §7), and they carry no information.
+#: which slow CPU mat-vecs about 17x (docs/method.md §7), and they carry no information.
 TINY_WEIGHT = 1e-150
 
 
@@ -60,7 +60,7 @@ class SmootherOutput:
         ``s_k^i = W_{k|N}^i`` where the transition ``k -> k+1`` exists, else 0.
     residual_scatter : Tensor, shape (B, nx, nx)
         The parameter-free part of the process-noise scatter,
-        ``sum_k [S_{k+1} - sum_i m_k^i m_k^i^T / s_k^i]`` (NOTES §7: it must not be dropped).
+        ``sum_k [S_{k+1} - sum_i m_k^i m_k^i^T / s_k^i]`` (docs/method.md §7: it must not be dropped).
     """
 
     log_weights: Tensor
