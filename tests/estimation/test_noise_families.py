@@ -165,6 +165,6 @@ def test_joint_vs_per_output_long_run():
     per = estimator("student-t-per-output", n_iter=100).fit(u, y)
     rv22 = _rv22_history(joint)
     assert rv22[-1] < 0.2 * RV_TRUE and rv22[-1] < rv22[-20]
-    assert abs(per.Rv_[1, 1] - RV_TRUE) < 0.03 and per.dof_[1] > 15.0
+    assert abs(per.Rv_[1, 1] - RV_TRUE) < 0.03 and per.dof_[1] > 10.0
     assert (per.outlier_weights_[~glitch, 1] < 0.5).sum() <= 3
     assert (joint.outlier_weights_[~glitch] < 0.5).sum() >= 25
