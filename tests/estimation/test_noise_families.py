@@ -1,0 +1,170 @@
+"""Joint vs per-output Student-t noise on a 2-output system whose glitches hit output 1 only
+(issue #11): the joint t down-weights both outputs of a glitch sample and lets the clean output's
+scale collapse; the per-output t down-weights the glitching sensor alone.
+
+Plus the estimator surface with ``noise="student-t-per-output"``: outlier weights per component,
+smoothing, simulation, pickling, independent fits and missing components.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import numpy as np
+import pytest
+import torch
+from scipy import stats
+
+from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+
+A_TRUE = np.array([[0.8, 0.2], [0.0, 0.6]])
+B_TRUE = np.array([[1.0], [0.5]])
+RW_TRUE, RV_TRUE = 0.05, 0.1
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def glitch_record(n: int, seed: int, rate: float = 0.1, amplitude=(4.0, 8.0)):
+    """``x+ = A x + B u + w``, ``y = x + v`` (Gaussian w, v), with glitches of random sign and
+    size ``amplitude`` added to output 1 only at a fraction ``rate`` of the samples."""
+    rng = np.random.default_rng(seed)
+    u = rng.normal(size=(n, 1))
+    x = np.zeros((n, 2))
+    for k in range(n - 1):
+        x[k + 1] = A_TRUE @ x[k] + B_TRUE @ u[k] + rng.normal(scale=math.sqrt(RW_TRUE), size=2)
+    y = x + rng.normal(scale=math.sqrt(RV_TRUE), size=(n, 2))
+    glitch = rng.random(n) < rate
+    y[glitch, 0] += rng.choice([-1.0, 1.0], glitch.sum()) * rng.uniform(*amplitude, glitch.sum())
+    return u, y, glitch
+
+
+def estimator(noise: str, **kw) -> RobustNSSMEstimator:
+    """Linear f and g (closed-form M-step); C = I fixed, so the states are the outputs' means."""
+    g = LinearObservation(2, 1, 2)
+    g.C.requires_grad_(False)
+    params = dict(
+        x0_mean=np.zeros(2), Rv_init=np.diag([0.2, 0.2]), dof_init=10.0, noise=noise,
+        n_particles=100, n_iter=30, tol=0.0, random_state=0,
+    )
+    params.update(kw)
+    return RobustNSSMEstimator(LinearTransition(2, 1), g, **params)
+
+
+@pytest.fixture(scope="module")
+def record():
+    return glitch_record(300, seed=0)
+
+
+@pytest.fixture(scope="module")
+def joint(record):
+    u, y, _ = record
+    return estimator("student-t").fit(u, y)
+
+
+@pytest.fixture(scope="module")
+def per_output(record):
+    u, y, _ = record
+    return estimator("student-t-per-output").fit(u, y)
+
+
+def _rv22_history(est) -> np.ndarray:
+    return np.array([r[1, 1] for r in est.history_["Rv"]])
+
+
+def test_per_output_keeps_the_clean_output(per_output, record):
+    _, _, glitch = record
+    est = per_output
+    assert est.Rv_.shape == (2, 2) and est.Rv_[0, 1] == 0.0 and est.Rv_[1, 0] == 0.0
+    assert est.dof_.shape == (2,)
+    assert 0.06 < est.Rv_[1, 1] < 0.15  # clean output: near the truth 0.1
+    assert est.dof_[1] > 10.0  # ... and near-Gaussian
+    assert est.dof_[0] < 3.0  # the glitching output is heavy-tailed
+    w = est.outlier_weights_
+    assert w.shape == (300, 2)
+    assert np.median(w[glitch, 0]) < 0.05  # glitches down-weighted on output 1 ...
+    assert w[glitch, 1].min() > 0.5 and w[glitch, 1].mean() > 0.9  # ... not on output 2
+    assert (w[~glitch, 1] < 0.5).sum() <= 3
+    assert est.history_["dof"].shape == (31, 2)
+
+
+def test_joint_t_down_weights_both_outputs_and_shrinks_the_clean_scale(joint, per_output, record):
+    _, _, glitch = record
+    est = joint
+    assert np.ndim(est.dof_) == 0 and est.dof_ < 2.0
+    w = est.outlier_weights_
+    assert w.shape == (300,)  # one weight for both outputs
+    assert np.median(w[glitch]) < 0.05  # output 2 of the glitch samples is thrown away too
+    assert (w[~glitch] < 0.5).sum() >= 15  # and many clean samples with it
+    rv22 = _rv22_history(est)
+    assert rv22[-1] < 0.3 * RV_TRUE  # the clean output's scale collapsed ...
+    assert rv22[-1] < rv22[-10]  # ... and is still falling
+    assert per_output.Rv_[1, 1] > 4.0 * est.Rv_[1, 1]
+
+
+def test_smooth_simulate_and_pickle(per_output, record):
+    u, y, glitch = record
+    est = per_output
+    sm = est.smooth(u, y)
+    assert sm.mean.shape == (300, 2) and sm.outlier_weights.shape == (300, 2)
+    assert np.median(sm.outlier_weights[glitch, 0]) < 0.1 < sm.outlier_weights[glitch, 1].min()
+    # simulated measurement noise (y - C x - d with C = I, D = 0): t per output, the fitted dof
+    x, ys = est.simulate(u, n_samples=20, random_state=1)
+    v = (ys - x - est.g_.d.detach().numpy()).reshape(-1, 2)
+    for j in range(2):
+        z = v[:, j] / math.sqrt(est.Rv_[j, j])
+        assert stats.kstest(z, stats.t(df=est.dof_[j]).cdf).pvalue > 1e-3
+    tail = (np.abs(v) / np.sqrt(np.diag(est.Rv_)) > 6).mean(0)
+    assert tail[0] > 0.05 > 0.005 > tail[1]  # heavy tails on output 1 only
+    loaded = pickle.loads(pickle.dumps(est))
+    np.testing.assert_array_equal(loaded.dof_, est.dof_)
+    np.testing.assert_array_equal(loaded.outlier_weights_, est.outlier_weights_)
+    assert loaded.log_likelihood(u, y) == est.log_likelihood(u, y)
+
+
+def test_fit_independent_per_output():
+    sets = [glitch_record(80, seed=s, rate=r) for s, r in [(10, 0.0), (11, 0.1), (12, 0.2)]]
+    fits = fit_independent(
+        estimator("student-t-per-output", n_particles=30, n_iter=4),
+        [s[0] for s in sets], [s[1] for s in sets],
+    )
+    assert len(fits) == 3
+    for est in fits:
+        assert est.dof_.shape == (2,) and est.history_["dof"].shape == (5, 2)
+        assert np.count_nonzero(est.Rv_ - np.diag(np.diag(est.Rv_))) == 0
+        assert est.outlier_weights_.shape == (80, 2)
+    assert len({tuple(est.dof_) for est in fits}) == 3  # each data set its own dofs
+    # the glitch-free set keeps its output-1 dof highest
+    assert fits[0].dof_[0] > max(fits[1].dof_[0], fits[2].dof_[0])
+
+
+def test_missing_components():
+    u, y, _ = glitch_record(120, seed=3)
+    rng = np.random.default_rng(4)
+    y = y.copy()
+    y[rng.random(120) < 0.2, 1] = np.nan
+    y[[5, 6], :] = np.nan
+    est = estimator("student-t-per-output", n_particles=40, n_iter=4).fit(u, y)
+    w = est.outlier_weights_
+    np.testing.assert_array_equal(np.isnan(w), np.isnan(y))
+    assert np.all(np.isfinite(est.Rv_)) and np.all(np.isfinite(est.dof_))
+
+
+@pytest.mark.slow
+def test_joint_vs_per_output_long_run():
+    """The issue's setting: 100 EM iterations on 500 samples."""
+    u, y, glitch = glitch_record(500, seed=1)
+    joint = estimator("student-t", n_iter=100).fit(u, y)
+    per = estimator("student-t-per-output", n_iter=100).fit(u, y)
+    rv22 = _rv22_history(joint)
+    assert rv22[-1] < 0.2 * RV_TRUE and rv22[-1] < rv22[-20]
+    assert abs(per.Rv_[1, 1] - RV_TRUE) < 0.03 and per.dof_[1] > 10.0
+    assert (per.outlier_weights_[~glitch, 1] < 0.5).sum() <= 3
+    assert (joint.outlier_weights_[~glitch] < 0.5).sum() >= 25
