@@ -52,6 +52,14 @@ class StudentTPerOutputNoise(MeasurementNoise):
     CORE_DIMS = {"Rv": 2, "dof": 1}
     per_component = True
 
+    def __post_init__(self):
+        off = self.Rv - torch.diag_embed(torch.diagonal(self.Rv, dim1=-2, dim2=-1))
+        if bool((off != 0).any()):  # the per-component whitening assumes a diagonal scale
+            raise ValueError(
+                "Rv must be diagonal for noise='student-t-per-output' (independent outputs), "
+                f"got off-diagonal entries up to {float(off.abs().max()):.3g}"
+            )
+
     @classmethod
     def initial(cls, Rv: Tensor, dof: float) -> StudentTPerOutputNoise:
         if not 0 < dof < math.inf:
