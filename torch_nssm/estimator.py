@@ -44,11 +44,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     """Robust identification of a nonlinear state-space model by EM with a particle smoother.
 
     The model is ``x_{k+1} = f(x_k, u_k) + w``, ``w ~ N(0, Rw)`` and ``y_k = g(x_k, u_k) + v``
-    with ``v ~ St(0, Rv, dof)`` (multivariate Student-t; ``noise="gaussian"`` for the Gaussian
-    baseline).  The E-step runs a bootstrap particle filter and a particle smoother; the M-step
-    updates ``f``'s and ``g``'s parameters (closed form when the module offers
-    ``solve_weighted_least_squares``, LBFGS or Adam otherwise), ``Rw``, ``Rv``, ``dof`` and the
-    initial-state prior (Liu & Yang, Neurocomputing 2019, with the corrections of the method notes).
+    with ``v ~ St(0, Rv, dof)`` (multivariate Student-t; see ``noise`` for the other families).
+    The E-step runs a bootstrap particle filter and a particle smoother; the M-step updates ``f``'s
+    and ``g``'s parameters (closed form for :class:`~torch_nssm.LinearInParameters` modules, LBFGS
+    or Adam otherwise), ``Rw``, the noise parameters and the initial-state prior (Liu & Yang,
+    Neurocomputing 2019, with the corrections of docs/method.md).
 
     Data follow the time convention: sample ``k`` has input ``u_k`` and output ``y_k``; ``y_k``
     observes ``x_k``; the mean of ``x_{k+1}`` is ``f(x_k, u_k)``.  Every method takes one record
@@ -71,10 +71,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     Rw_init : array-like, optional
         Initial process-noise covariance; ``0.1 * I`` if omitted.
     Rv_init : array-like, optional
-        Initial measurement-noise scale matrix.  If omitted: ``0.02 * diag(s^2)`` with ``s`` a
-        robust (median absolute deviation) spread of each output, so that outliers do not
-        inflate it.  Starting with a small measurement noise makes the first E-steps follow the
-        data; a large start can let the fit settle where ``g`` explains nothing (docs/method.md §7).
+        Initial measurement-noise scale matrix; ``0.02 * diag(s^2)`` if omitted, ``s`` a robust
+        spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise.
     noise : {"student-t", "gaussian", "student-t-per-output"}, default="student-t"
@@ -97,14 +95,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     n_particles : int, default=200
         Number of particles ``L``.
     n_particles_final : int, optional
-        If given, the number of particles grows geometrically from ``n_particles`` at the first
-        iteration to ``n_particles_final`` at iteration ``n_iter`` (cheap early iterations, low
-        Monte Carlo jitter at the end: EM with ``L`` particles jitters by ``O(1/sqrt(L))``).
-        The final E-step and later ``smooth``/``predict`` calls use ``n_particles_final``.
+        The particle count grows geometrically from ``n_particles`` to this at iteration
+        ``n_iter``; the final E-step and later ``smooth``/``predict`` calls use it.
     average_last : int, default=0
-        If > 1, the fitted parameters are the average of the last ``average_last`` EM iterates
-        (Polyak-Ruppert averaging of the stochastic EM), and the final E-step
-        (``outlier_weights_``, ``log_likelihood_``) runs at the averaged parameters.
+        If > 1, the fitted parameters are the average of the last ``average_last`` iterates
+        (Polyak-Ruppert); the final E-step runs at the averaged parameters.
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3
@@ -112,17 +107,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         averaged over windows of 5 iterations (EM with particles is stochastic).  ``0`` runs all
         ``n_iter`` iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.
     n_init : int, default=1
-        Number of EM runs; the one with the highest final log-likelihood estimate is kept (the
-        cure for the bad local optima of poorly chosen initial values).  The first run starts
-        from ``f`` and ``g`` as given; run ``r > 0`` multiplies every free parameter of ``f`` and
-        ``g`` by ``exp(init_jitter * eps)``, ``eps ~ N(0, 1)`` drawn from ``random_state`` (signs
-        and exact zeros are kept), and uses its own particle seed.  The noise parameters start
-        from ``Rw_init``, ``Rv_init``, ``dof_init`` in every run.  Costs ``n_init`` fits.
+        Number of EM runs; the one with the highest final log-likelihood estimate is kept.  Run 0
+        starts from ``f`` and ``g`` as given, run ``r > 0`` from their free parameters times
+        ``exp(init_jitter * N(0, 1))`` (signs and zeros kept), with its own particle seed.
     init_jitter : float, default=1.0
-        Standard deviation of the log-normal factor of the restarts (1.0: two thirds of the
-        starts within a factor 0.37-2.7 of the given values).  On the paper's example started
-        at ``a = b = c = 0.2`` (where EM sticks at ``c -> 0``, docs/method.md §7), 4 runs of 30
-        iterations with 0.5 all stayed stuck; with 1.0 one run left the bad basin.
+        Standard deviation of the log-normal factor of the restarts (docs/design.md).
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
@@ -138,13 +127,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         M-step; ``max_iter_mstep`` is then a number of epochs, early-stopped on the full weighted
         objective (the M-step for neural networks).  Full-batch steps if omitted.
     smoother : {"ffbsm", "ffbsi", "mcmc"}, default="ffbsm"
-        Particle smoother of the E-step: ``"ffbsm"`` exact forward-filtering backward-smoothing,
-        O(N L^2); ``"ffbsi"`` backward simulation by rejection sampling with an exact fallback and
-        ``"mcmc"`` backward simulation with Metropolis-Hastings moves, both O(N L) and giving the
-        same M-step estimates within Monte Carlo error (:mod:`torch_nssm.inference.smoothing`).  FFBSm builds
-        its ``L x L`` kernels in single precision (states centred per step, statistics accumulated
-        in ``dtype``: relative rounding ~1e-7, far below the Monte Carlo error).  ``"mcmc"`` is the
-        fastest for large ``L``; ``"ffbsm"`` has no sampling noise of its own.
+        Particle smoother of the E-step (registry :data:`torch_nssm.inference.smoothers.SMOOTHERS`):
+        ``"ffbsm"`` exact forward-filtering backward-smoothing, O(N L^2), no sampling noise of its
+        own; ``"ffbsi"`` (rejection) and ``"mcmc"`` (Metropolis-Hastings moves) backward
+        simulation, O(N L), the same M-step estimates within Monte Carlo error; ``"mcmc"`` is the
+        fastest for large ``L``.
     resampling : {"systematic", "stratified", "residual", "multinomial"}, default="systematic"
     ess_threshold : float, default=1.0
         Resample when the effective sample size is below ``ess_threshold * n_particles``
@@ -160,11 +147,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         ``smooth``, ``predict(..., horizon=k)``, ``simulate``...) is reproducible; the methods
         also take their own ``random_state``.
     n_threads : int or None, default=1
-        CPU threads of torch (and of the BLAS/OpenMP pools) while ``fit``, ``predict``, ``score``,
-        ``smooth``, ``filter``, ``simulate`` and ``log_likelihood`` run; the caller's settings are
-        restored afterwards.  The filter's per-step kernels are small: one thread is the fast
-        choice on most machines (measured: ``benchmarks/threads.py``).  ``None`` leaves torch's
-        setting alone (e.g. a GPU fit, or FFBSm with thousands of particles on an idle machine).
+        CPU threads of torch and BLAS while the estimator's methods run; the caller's settings are
+        restored afterwards (docs/design.md, "Threads").  ``None`` leaves them alone.
     device : str or torch.device, default="cpu"
         Where the filter, smoother and M-step run (``"cuda"`` for a GPU: the data, ``f``, ``g`` and
         the random numbers live there; fitted attributes come back as NumPy arrays and pickled
@@ -179,17 +163,18 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Fitted copies of ``f`` and ``g`` (the modules passed in are not changed).
     Rw_ : ndarray of shape (nx, nx)
     Rv_ : ndarray of shape (p, p)
-    dof_ : float
-        ``inf`` for Gaussian noise.
+    dof_ : float, or ndarray of shape (p,)
+        ``inf`` for Gaussian noise; one per output for ``"student-t-per-output"``.
     x0_mean_ : ndarray of shape (nx,)
     x0_cov_ : ndarray of shape (nx, nx)
     history_ : dict of str to ndarray
         Every parameter and the log-likelihood estimate at every iteration (index 0: the initial
-        values), e.g. ``history_["f.a"]``, ``history_["Rv"]``, ``history_["log_likelihood"]``.
-        With ``n_init > 1``: the kept run's.
-    outlier_weights_ : ndarray of shape (N,), or list of them for several records
+        values), e.g. ``history_["f.a"]``, ``history_["Rv"]``, ``history_["log_likelihood"]``;
+        ``history_["rejected.f"]``/``["rejected.g"]``: the iterations whose M-step of that module
+        was undone (a warning says so).  With ``n_init > 1``: the kept run's.
+    outlier_weights_ : ndarray of shape (N,) or (N, p), or list of them for several records
         ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier (NaN where ``y_k`` is
-        missing).
+        missing); per output for ``"student-t-per-output"``.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
     init_log_likelihoods_ : ndarray of shape (n_init,)
