@@ -506,10 +506,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
         rs = check_random_state(self.random_state)
+        limit = _divergence_limit(base, data)
+        if not warm:
+            _warn_if_divergent(base, data, limit)
         runs: list[EMResult] = []
         for r in range(n_runs):
             generator = _seeded_generator(device, rs)  # run 0: the same seed as _generator()
-            start = _copy_model(base) if r == 0 else _jittered(base, self.init_jitter, rs)
+            start = _copy_model(base) if r == 0 else _stable_jitter(base, self.init_jitter, rs, data, limit)
             desc = "robust EM" if n_runs == 1 else f"robust EM (run {r + 1}/{n_runs})"
             runs.append(run_em([start], data, self._em_options(desc), generator)[0])
             if runs[-1].interrupted:
@@ -531,26 +534,47 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 f"{len(runs) - len(ok)} of {len(runs)} EM runs stopped on a numerical error and "
                 f"were discarded (first: {first})",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         best = max(ok, key=lambda run: run.log_likelihood)
         self._store_run(best, data, multi, warm, y_1d, init_lls)
         message = self._rejection_message(best)
         if message:
-            warnings.warn(message, RuntimeWarning, stacklevel=2)
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
+        explained, simulated = _explained_fraction(best, data)
+        if explained >= EXPLAINED_FLOOR and simulated < 0.0:
+            warnings.warn(
+                f"the model's noise-free simulation explains none of y (robust R² of the free run "
+                f"{simulated:.2f}, of the smoothed outputs {explained:.2f}): the states follow y through "
+                "the process noise, not through f; f and g may sit in a wrong basin (check the scale of "
+                "g's output against y's, try other initial values or n_init > 1), or the model is a "
+                "tracking model rather than a simulation model (fit_Rw=False with a small Rw_init "
+                "holds the process noise)",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        if explained < EXPLAINED_FLOOR:
+            warnings.warn(
+                f"g explains almost none of the variance of y (robust R² of the smoothed outputs "
+                f"{explained:.3f}): the fit may sit where g is nearly constant and the noise explains "
+                "the data; check the scale of g's output against y's, try other initial values of g, "
+                "or n_init > 1",
+                RuntimeWarning,
+                stacklevel=3,
+            )
         if best.interrupted:
             warnings.warn(
                 f"fit interrupted (KeyboardInterrupt) after {best.n_done} EM iterations: the fitted "
                 "attributes hold the last completed iteration",
                 RuntimeWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         elif not best.converged and self.tol > 0 and self.n_iter > 0:
             warnings.warn(
                 f"EM did not converge in n_iter={self.n_iter} iterations (tol={self.tol}); "
                 "raise n_iter or tol, or average the last iterates",
                 ConvergenceWarning,
-                stacklevel=2,
+                stacklevel=3,
             )
         return self
 
@@ -944,6 +968,65 @@ def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
     return replace(model, f=copy.deepcopy(model.f), g=copy.deepcopy(model.g))
 
 
+#: Below this robust R² of the smoothed outputs against ``y``, a fit is reported as explaining nothing.
+EXPLAINED_FLOOR = 0.05
+
+
+@torch.no_grad()
+def _explained_fraction(run: EMResult, data: SequenceBatch) -> tuple[float, float]:
+    """Robust R² against ``y`` of the smoothed outputs ``sum_l W_{k|N}^l g(x_k^l, u_k)`` and of the
+    noise-free simulation (NaN scores count as explained: nothing to report)."""
+    est = run.estep
+    g = run.model.observation_steps(est.filter.particles, data.u)  # (T, B, L, p)
+    w = torch.softmax(est.smoother.log_weights, dim=-1).unsqueeze(-1)
+    yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+    scores = []
+    for y_hat in ((w * g).sum(2), prediction.free_run(run.model, data.u)[1]):
+        score = robust_r2_score(yt, torch.cat(data.unpad(y_hat)).cpu().numpy())
+        scores.append(score if np.isfinite(score) else 1.0)
+    return scores[0], scores[1]
+
+
+def _divergence_limit(model: StateSpaceModel, data: SequenceBatch) -> float:
+    """How far a simulation may go before it counts as diverging: 1e3 times the larger of the start's
+    own free-run range and the prior's scale (at least 1e3)."""
+    states, _ = prediction.free_run(model, data.u[:1000])
+    finite = states[torch.isfinite(states)]
+    prior = float(model.x0_mean.abs().max() + model.x0_cov.diagonal().sqrt().max())
+    own = float(finite.abs().max()) if finite.numel() else 0.0
+    return 1e3 * max(1.0, prior, own if own < 1e6 else 0.0)
+
+
+def _warn_if_divergent(model: StateSpaceModel, data: SequenceBatch, limit: float) -> None:
+    step = prediction.divergence(model, data.u, limit=1e6 * max(1.0, limit / 1e3))
+    if step is not None:
+        warnings.warn(
+            f"the noise-free simulation of f from x0_mean diverges at step {step} with the initial "
+            "parameters (the state leaves every finite bound): start from values for which f is "
+            "stable, or EM may fail with non-finite updates",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+
+
+def _stable_jitter(
+    base: StateSpaceModel, scale: float, rs: np.random.RandomState, data: SequenceBatch, limit: float
+) -> StateSpaceModel:
+    """A jittered restart whose noise-free simulation stays bounded (up to 20 draws; the last draw
+    if none does, with a warning)."""
+    for _ in range(20):
+        start = _jittered(base, scale, rs)
+        if prediction.divergence(start, data.u, limit) is None:
+            return start
+    warnings.warn(
+        f"no jittered restart (init_jitter={scale}) gave a stable simulation of f in 20 draws; "
+        "lower init_jitter",
+        RuntimeWarning,
+        stacklevel=4,
+    )
+    return start
+
+
 def _jittered(model: StateSpaceModel, scale: float, rs: np.random.RandomState) -> StateSpaceModel:
     """A copy whose free module parameters are multiplied by ``exp(scale * N(0, 1))``."""
     new = _copy_model(model)
@@ -987,7 +1070,7 @@ def _check_data_against_model(data: SequenceBatch, f: nn.Module, g: nn.Module, n
             f"only {n_obs} observed samples for {n_free} free parameters of f and g (plus the noise "
             "parameters): the estimates will be poorly determined; use a longer record",
             UserWarning,
-            stacklevel=4,
+            stacklevel=5,
         )
 
 

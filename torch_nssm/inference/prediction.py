@@ -14,7 +14,7 @@ from torch import Tensor
 from ..core.model import StateSpaceModel
 from .filtering import FilterOutput, sample_initial_state
 
-__all__ = ["free_run", "k_step_ahead", "simulate"]
+__all__ = ["free_run", "k_step_ahead", "simulate", "divergence"]
 
 
 def _step(model: StateSpaceModel, x: Tensor, u: Tensor, chol_w: Tensor, generator) -> Tensor:
@@ -47,6 +47,16 @@ def free_run(model: StateSpaceModel, u: Tensor) -> tuple[Tensor, Tensor]:
         if k + 1 < T:
             x = model.transition(x, u[k])
     return states, model.g(states, u)
+
+
+@torch.no_grad()
+def divergence(model: StateSpaceModel, u: Tensor, limit: float, max_steps: int = 1000) -> int | None:
+    """The first step at which the noise-free simulation from ``x0_mean`` leaves ``|x| <= limit``
+    or stops being finite (``None`` if it stays inside for ``min(T, max_steps)`` steps)."""
+    states, _ = free_run(model, u[:max_steps])
+    bad = ~torch.isfinite(states) | (states.abs() > limit)
+    steps = torch.nonzero(bad.flatten(1).any(-1)).flatten()
+    return int(steps[0]) if steps.numel() else None
 
 
 @torch.no_grad()
