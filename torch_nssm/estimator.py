@@ -26,6 +26,7 @@ from ._stats import robust_scale
 from ._threads import limited_threads, with_thread_limit
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model
+from .core.parametric import LinearInParameters
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
 from .estimation.loop import EMOptions, EMResult, run_em
 from .estimation.mstep import MStepOptions
@@ -109,7 +110,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     n_init : int, default=1
         Number of EM runs; the one with the highest final log-likelihood estimate is kept.  Run 0
         starts from ``f`` and ``g`` as given, run ``r > 0`` from their free parameters times
-        ``exp(init_jitter * N(0, 1))`` (signs and zeros kept), with its own particle seed.
+        ``exp(init_jitter * N(0, 1))`` (signs and zeros kept; redrawn until ``f``'s noise-free
+        simulation stays bounded), with ``g`` refitted to ``y`` along that simulation (robust least
+        squares, for ``g`` linear in its parameters) and its own particle seed.
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (docs/design.md).
     warm_start : bool, default=False
@@ -1017,7 +1020,7 @@ def _stable_jitter(
     for _ in range(20):
         start = _jittered(base, scale, rs)
         if prediction.divergence(start, data.u, limit) is None:
-            return start
+            return _g_fitted_to_y(start, data)
     warnings.warn(
         f"no jittered restart (init_jitter={scale}) gave a stable simulation of f in 20 draws; "
         "lower init_jitter",
@@ -1025,6 +1028,31 @@ def _stable_jitter(
         stacklevel=4,
     )
     return start
+
+
+@torch.no_grad()
+def _g_fitted_to_y(model: StateSpaceModel, data: SequenceBatch, n_reweight: int = 3) -> StateSpaceModel:
+    """For a ``g`` linear in its parameters: its free parameters refitted to ``y`` along the noise-free
+    simulation of ``f`` (robust least squares, Cauchy weights), so that a restart's ``g`` has the
+    scale of the data whatever the jitter drew.  Other modules are left as drawn."""
+    g = model.g
+    if not isinstance(g, LinearInParameters) or not bool(g.free_mask().any()):
+        return model
+    states, _ = prediction.free_run(model, data.u)
+    mask = data.obs_mask  # (T, B, p)
+    x, u, y = states[mask.any(-1)], data.u[mask.any(-1)], data.y[mask.any(-1)]
+    m = mask[mask.any(-1)].to(y.dtype)
+    precision = torch.diag_embed(m)  # missing components carry no weight
+    weight = torch.ones(y.shape[0], dtype=y.dtype, device=y.device)
+    backup = copy.deepcopy(g.state_dict())
+    for _ in range(n_reweight + 1):
+        g.solve_weighted_least_squares(x, u, y, weight, precision)
+        r = torch.nan_to_num(y - g(x, u)) * m
+        scale = float(torch.median(r.abs().sum(-1))) * 1.4826 + 1e-300
+        weight = 1.0 / (1.0 + (r.abs().sum(-1) / (2.385 * scale)) ** 2)
+    if not all(bool(torch.isfinite(p).all()) for p in g.parameters()):
+        g.load_state_dict(backup)
+    return model
 
 
 def _jittered(model: StateSpaceModel, scale: float, rs: np.random.RandomState) -> StateSpaceModel:

@@ -226,3 +226,18 @@ def test_a_trapped_fit_is_reported():
     with warnings.catch_warnings():
         warnings.filterwarnings("error", message=".*explains none of y.*")
         _est(n_particles=100, n_iter=30).fit(d.u, d.y)  # the right basin: no warning
+
+
+def test_restarts_reach_the_right_basin_when_g_has_the_wrong_scale():
+    """y scaled by 0.1, start a = b = c = 0.5 (g's output 5x too large): a restart's g is refitted to
+    y along f's simulation, so n_init=4 finds the basin that a start at c = 0.05 reaches (before:
+    the best of 4 restarts stayed at a ~ 1, b ~ 0 with a log-likelihood ~200 lower)."""
+    d = make_paper_example(n_samples=300, outlier_fraction=0.1, random_state=0)
+    y = 0.1 * np.asarray(d.y)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        best = _est(n_particles=100, n_iter=30, n_init=4, tol=1e-3).fit(d.u, y)
+        good = _est(PaperTransition(0.5, 0.5), n_particles=100, n_iter=30, tol=1e-3)
+        good.set_params(g__c=0.05).fit(d.u, y)
+    assert best.f_.b.item() > 0.8 and abs(best.g_.c.item() - 0.1) < 0.02
+    assert best.log_likelihood_ > good.log_likelihood_ - 10.0
