@@ -13,7 +13,6 @@ import pickle
 
 import numpy as np
 import pytest
-import torch
 from scipy import stats
 
 from torch_nssm import RobustNSSMEstimator, fit_independent
@@ -22,14 +21,6 @@ from torch_nssm.blocks.linear import LinearObservation, LinearTransition
 A_TRUE = np.array([[0.8, 0.2], [0.0, 0.6]])
 B_TRUE = np.array([[1.0], [0.5]])
 RW_TRUE, RV_TRUE = 0.05, 0.1
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def glitch_record(n: int, seed: int, rate: float = 0.1, amplitude=(4.0, 8.0)):

@@ -107,6 +107,15 @@ def sample_student_t(
     return z / torch.sqrt(lam).unsqueeze(-1)
 
 
+def check_dof_init(dof: float) -> None:
+    """The initial degrees of freedom of a Student-t family must be positive and finite."""
+    if not 0 < dof < math.inf:
+        raise ValueError(
+            f"dof_init must be positive and finite for Student-t noise, got {dof!r} "
+            "(use noise='gaussian' for the Gaussian limit)"
+        )
+
+
 class _StudentTEvaluator(SquaredNormEvaluator):
     """The filter's fused log-density: ``-(nu + p)/2 log1p(delta2 / nu)`` with the per-``(T, B)``
     coefficients split into per-step views once per pass."""
@@ -133,11 +142,7 @@ class StudentTNoise(JointScaleNoise):
 
     @classmethod
     def initial(cls, Rv: Tensor, dof: float) -> StudentTNoise:
-        if not 0 < dof < math.inf:
-            raise ValueError(
-                f"dof_init must be positive and finite for Student-t noise, got {dof!r} "
-                "(use noise='gaussian' for the Gaussian limit)"
-            )
+        check_dof_init(dof)
         return cls(Rv=Rv, dof=torch.tensor(float(dof), dtype=Rv.dtype, device=Rv.device))
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _StudentTEvaluator:

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, standard_gamma
-from .student_t import latent_scale_expectations, solve_dof
+from .student_t import check_dof_init, latent_scale_expectations, solve_dof
 
 __all__ = ["StudentTPerOutputNoise"]
 
@@ -56,23 +56,13 @@ class StudentTPerOutputNoise(MeasurementNoise):
         off = self.Rv - torch.diag_embed(torch.diagonal(self.Rv, dim1=-2, dim2=-1))
         if bool((off != 0).any()):  # the per-component whitening assumes a diagonal scale
             raise ValueError(
-                "Rv must be diagonal for noise='student-t-per-output' (independent outputs), "
+                "Rv_init must be diagonal for noise='student-t-per-output' (independent outputs), "
                 f"got off-diagonal entries up to {float(off.abs().max()):.3g}"
             )
 
     @classmethod
     def initial(cls, Rv: Tensor, dof: float) -> StudentTPerOutputNoise:
-        if not 0 < dof < math.inf:
-            raise ValueError(
-                f"dof_init must be positive and finite for Student-t noise, got {dof!r} "
-                "(use noise='gaussian' for the Gaussian limit)"
-            )
-        off = Rv - torch.diag_embed(torch.diagonal(Rv, dim1=-2, dim2=-1))
-        if bool((off != 0).any()):
-            raise ValueError(
-                "Rv_init must be diagonal for noise='student-t-per-output' (independent outputs), "
-                f"got off-diagonal entries up to {float(off.abs().max()):.3g}"
-            )
+        check_dof_init(dof)
         dof_t = torch.full(Rv.shape[-1:], float(dof), dtype=Rv.dtype, device=Rv.device)
         return cls(Rv=Rv, dof=dof_t)
 
