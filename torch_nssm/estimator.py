@@ -25,7 +25,7 @@ from . import _validation as V
 from ._stats import robust_scale
 from ._threads import limited_threads, with_thread_limit
 from .core.model import SequenceBatch, StateSpaceModel
-from .core.noise import NOISE_MODELS, get_noise_model
+from .core.noise import NOISE_MODELS, get_noise_model, symmetric_pd
 from .core.parametric import LinearInParameters
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
 from .estimation.loop import EMOptions, EMResult, run_em
@@ -649,13 +649,16 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         return V.check_device(self.device)
 
-    def _fitted_model(self, device) -> StateSpaceModel:
-        """The fitted model on ``device``, with copies of the fitted modules."""
+    def _fitted_model(
+        self, device, x0=None, data: SequenceBatch | None = None, random_state=None
+    ) -> StateSpaceModel:
+        """The fitted model on ``device``, with copies of the fitted modules, starting at ``x0``
+        (see :meth:`_initial_states`)."""
         kw = dict(dtype=self.dtype, device=device)
         t = lambda a: torch.as_tensor(a, **kw)  # noqa: E731
         family = get_noise_model(self.noise)
         noise = family(**{name: t(getattr(self, f"{name}_")) for name in family.CORE_DIMS})
-        return StateSpaceModel(
+        model = StateSpaceModel(
             copy.deepcopy(self.f_).to(**kw),
             copy.deepcopy(self.g_).to(**kw),
             t(self.Rw_),
@@ -663,6 +666,50 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             t(self.x0_mean_),
             t(self.x0_cov_),
         )
+        if x0 is None:
+            return model
+        mean, cov = self._initial_states(model, data, x0, random_state)
+        return replace(model, x0_mean=mean, x0_cov=cov)
+
+    def _initial_states(self, model: StateSpaceModel, data: SequenceBatch, x0, random_state=None) -> tuple:
+        """Prior mean and covariance of the first state of each record of ``data`` for ``x0``:
+        ``"estimate"`` (from the record's first outputs) or values ``(nx,)``, ``(B, nx)`` or a list
+        of ``(nx,)`` (their covariance: the fitted ``x0_cov_``)."""
+        B, nx = data.n_sequences, model.state_dim
+        if isinstance(x0, str):
+            if x0 != "estimate":
+                raise ValueError(
+                    f"x0 must be 'estimate' or an array of shape ({nx},) or ({B}, {nx}), got {x0!r}"
+                )
+            return self._estimate_initial_states(model, data, self._generator(data.y.device, random_state))
+        kw = dict(dtype=self.dtype, device=data.y.device)
+        try:
+            values = torch.as_tensor(np.asarray(x0, dtype=float), **kw)
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"x0 must be 'estimate' or numbers of shape ({nx},) or ({B}, {nx})") from exc
+        if values.shape == (nx,):
+            values = values.expand(B, nx)
+        if tuple(values.shape) != (B, nx):
+            raise ValueError(
+                f"x0 must have shape ({nx},) or ({B}, {nx}) (one state per record), "
+                f"got {tuple(values.shape)}"
+            )
+        if not bool(torch.isfinite(values).all()):
+            raise ValueError("x0 contains NaN or infinite values")
+        return values, model.per_sequence("x0_cov", B)
+
+    def _estimate_initial_states(self, model: StateSpaceModel, data: SequenceBatch, generator) -> tuple:
+        """Smoothed distribution of each record's first state given its first ``INITIAL_SAMPLES``
+        outputs, from a broad prior (the fitted prior's covariance times 100, plus ``Rw``)."""
+        if not bool(data.obs_mask.any()):
+            raise ValueError("x0='estimate' needs the measured outputs y of the record(s)")
+        n = min(data.n_steps, INITIAL_SAMPLES)
+        head = SequenceBatch(data.u[:n], data.y[:n], data.lengths.clamp(max=n))
+        broad = replace(model, x0_cov=100.0 * model.x0_cov + model.Rw)
+        est = self._e_step(broad, head, generator)
+        mean, cov = smoothed_moments(est.filter.particles[:1], est.smoother.log_weights[:1])
+        eye = torch.eye(model.state_dim, dtype=cov.dtype, device=cov.device)
+        return mean[0], symmetric_pd(cov[0] + 1e-9 * eye)
 
     def _outputs(self, values: torch.Tensor, data: SequenceBatch, multi: bool):
         """Time-major ``(T, B, p)`` outputs as arrays shaped like ``y`` (a list for records)."""
@@ -671,17 +718,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             out = [a[:, 0] for a in out]
         return out if multi else out[0]
 
-    def _predictions(self, data: SequenceBatch, horizon, random_state, device) -> torch.Tensor:
+    def _predictions(self, data: SequenceBatch, horizon, random_state, device, x0=None) -> torch.Tensor:
         """Free-run (``horizon=None``) or k-step-ahead outputs, time-major ``(T, B, p)``."""
-        model = self._fitted_model(device)
+        model = self._fitted_model(device, x0, data, random_state)
         if horizon is None:
             return prediction.free_run(model, data.u)[1]
         gen = self._generator(device, random_state)
         return prediction.k_step_ahead(model, data.u, self._filter(model, data, gen), horizon, gen)
 
-    def _check_horizon(self, horizon, y) -> None:
+    def _check_horizon(self, horizon, y, x0=None) -> None:
         if horizon is None:
-            if y is not None:
+            if y is not None and not (isinstance(x0, str) and x0 == "estimate"):
                 raise ValueError(
                     "predict(u, y) needs horizon=k (k-step-ahead predictions from y); "
                     "predict(u) alone gives the free-run simulation"
@@ -692,7 +739,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             raise ValueError(f"horizon={horizon} needs the measured outputs y")
 
     @with_thread_limit
-    def predict(self, u, y=None, *, horizon: int | None = None, random_state=None):
+    def predict(self, u, y=None, *, horizon: int | None = None, x0=None, random_state=None):
         """Predicted outputs: the free-run simulation, or k-step-ahead predictions given ``y``.
 
         Parameters
@@ -709,6 +756,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             its particles at ``t - k`` are propagated ``k`` steps through ``f`` *with* process
             noise and ``g`` is averaged over them with the filter weights; for ``t < k`` the
             initial-state prior is propagated instead.  ``0`` gives the filtered outputs.
+        x0 : array-like of shape (nx,) or (n_records, nx), or "estimate", optional
+            The first state of the record(s) (default: ``x0_mean_``, the *training* record's).
+            ``"estimate"``: from the record's first outputs (a smoothing pass over its first
+            ``INITIAL_SAMPLES`` samples from a broad prior; needs ``y``, also for the free run).
         random_state : int, optional
             Seed of the particle filter for ``horizon`` (default: the estimator's).
 
@@ -718,13 +769,21 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             Shaped like the ``y`` given to :meth:`fit`.
         """
         device = self._check_fitted()
-        self._check_horizon(horizon, y)
+        self._check_horizon(horizon, y, x0)
         data, multi = self._batch(u, y, device, fitted=True, require_y=horizon is not None)
-        return self._outputs(self._predictions(data, horizon, random_state, device), data, multi)
+        return self._outputs(self._predictions(data, horizon, random_state, device, x0), data, multi)
 
     @with_thread_limit
     def score(
-        self, u, y, sample_weight=None, *, horizon: int | None = None, robust: bool = False, random_state=None
+        self,
+        u,
+        y,
+        sample_weight=None,
+        *,
+        horizon: int | None = None,
+        robust: bool = False,
+        x0=None,
+        random_state=None,
     ):
         """Coefficient of determination R² of :meth:`predict` (scikit-learn's regressor score).
 
@@ -746,6 +805,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             See :meth:`predict`.
         robust : bool, default=False
             Score with robust scales instead of variances (no ``sample_weight``).
+        x0 : array-like or "estimate", optional
+            The first state of the record(s), as in :meth:`predict`.
         random_state : int, optional
             Seed for ``horizon``.
 
@@ -759,7 +820,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         if horizon is not None:
             self._check_horizon(horizon, y)
         data, multi = self._batch(u, y, device, fitted=True)
-        pred = self._predictions(data, horizon, random_state, device)
+        pred = self._predictions(data, horizon, random_state, device, x0)
         yt = torch.cat(data.unpad(data.y)).cpu().numpy()
         yp = torch.cat(data.unpad(pred)).cpu().numpy()
         sw = None
@@ -781,7 +842,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         return float(np.mean(scores))
 
     @with_thread_limit
-    def simulate(self, u, n_samples: int = 1, random_state=None):
+    def simulate(self, u, n_samples: int = 1, random_state=None, *, x0=None):
         """Sample state and output trajectories from the fitted model, noise included.
 
         ``x_0 ~ N(x0_mean_, x0_cov_)``, ``x_{k+1} = f(x_k, u_k) + w_k``, ``w ~ N(0, Rw_)``,
@@ -796,6 +857,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             Number of trajectories.
         random_state : int, RandomState or None
             Seed (default: the estimator's ``random_state``).
+        x0 : array-like of shape (nx,) or (n_records, nx), optional
+            Mean of the first state (default ``x0_mean_``); its spread stays ``x0_cov_``.
 
         Returns
         -------
@@ -806,15 +869,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_positive(n_samples, "n_samples", integer=True, minimum=1, inclusive=True)
         data, multi = self._batch(u, None, device, fitted=True, require_y=False)
         gen = self._generator(device, random_state)
-        x, yy = prediction.simulate(self._fitted_model(device), data.u, n_samples, gen)
+        if isinstance(x0, str):
+            raise ValueError("simulate has no outputs to estimate x0 from: pass the state (nx,) itself")
+        x, yy = prediction.simulate(self._fitted_model(device, x0, data), data.u, n_samples, gen)
         xs = [a.transpose(0, 1).cpu().numpy() for a in data.unpad(x)]
         ys = [a.transpose(0, 1).cpu().numpy() for a in data.unpad(yy)]
         return (xs, ys) if multi else (xs[0], ys[0])
 
-    def _state_estimates(self, u, y, kind: str, return_particles: bool, random_state):
+    def _state_estimates(self, u, y, kind: str, return_particles: bool, random_state, x0=None):
         device = self._check_fitted()
         data, multi = self._batch(u, y, device, fitted=True)
-        model = self._fitted_model(device)
+        model = self._fitted_model(device, x0, data, random_state)
         gen = self._generator(device, random_state)
         if kind == "smoother":
             est = self._e_step(model, data, gen)
@@ -840,7 +905,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         return out if multi else out[0]
 
     @with_thread_limit
-    def smooth(self, u, y, *, return_particles: bool = False, random_state=None):
+    def smooth(self, u, y, *, return_particles: bool = False, x0=None, random_state=None):
         """Smoothed state distribution ``p(x_k | y_{0:N-1})`` at the fitted parameters.
 
         Parameters
@@ -849,6 +914,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             As in :meth:`fit`.
         return_particles : bool, default=False
             Keep the particles and smoothing weights in the result (weighted quantile bands).
+        x0 : array-like or "estimate", optional
+            Prior mean of the first state (default ``x0_mean_``, covariance ``x0_cov_``), as in
+            :meth:`predict`.
         random_state : int, optional
             Seed for this call; defaults to the estimator's ``random_state``.
 
@@ -858,24 +926,45 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             ``mean`` ``(N, nx)``, ``cov`` ``(N, nx, nx)``, ``outlier_weights`` ``(N,)``,
             ``interval(level)``, ``quantiles(q)``, ...
         """
-        return self._state_estimates(u, y, "smoother", return_particles, random_state)
+        return self._state_estimates(u, y, "smoother", return_particles, random_state, x0)
 
     @with_thread_limit
-    def filter(self, u, y, *, return_particles: bool = False, random_state=None):
+    def filter(self, u, y, *, return_particles: bool = False, x0=None, random_state=None):
         """Filtered state distribution ``p(x_k | y_{0:k})`` at the fitted parameters.
 
         Same arguments and result type as :meth:`smooth`; the outlier weights use the filter
         weights.
         """
-        return self._state_estimates(u, y, "filter", return_particles, random_state)
+        return self._state_estimates(u, y, "filter", return_particles, random_state, x0)
 
     @with_thread_limit
-    def log_likelihood(self, u, y, *, random_state=None) -> float:
-        """Particle estimate of ``log p(y | u)`` at the fitted parameters (summed over records)."""
+    def log_likelihood(self, u, y, *, x0=None, random_state=None) -> float:
+        """Particle estimate of ``log p(y | u)`` at the fitted parameters (summed over records);
+        ``x0`` as in :meth:`smooth`."""
         device = self._check_fitted()
         data, _ = self._batch(u, y, device, fitted=True)
-        filt = self._filter(self._fitted_model(device), data, self._generator(device, random_state))
+        model = self._fitted_model(device, x0, data, random_state)
+        filt = self._filter(model, data, self._generator(device, random_state))
         return float(filt.log_likelihood.sum())
+
+    @with_thread_limit
+    def initial_state(self, u, y, *, random_state=None):
+        """The first state of a new record, estimated from its first outputs.
+
+        A smoothing pass over the first ``INITIAL_SAMPLES`` samples from a broad prior (the fitted
+        prior's covariance times 100, plus ``Rw_``); what ``x0="estimate"`` uses.
+
+        Returns
+        -------
+        mean : ndarray of shape (nx,), or (n_records, nx) for a list of records
+        cov : ndarray of shape (nx, nx), or (n_records, nx, nx)
+        """
+        device = self._check_fitted()
+        data, multi = self._batch(u, y, device, fitted=True)
+        model = self._fitted_model(device)
+        mean, cov = self._estimate_initial_states(model, data, self._generator(device, random_state))
+        mean, cov = mean.cpu().numpy(), cov.cpu().numpy()
+        return (mean, cov) if multi else (mean[0], cov[0])
 
 
 def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool | None = None) -> list:
@@ -970,6 +1059,10 @@ def _seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.
 def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
     return replace(model, f=copy.deepcopy(model.f), g=copy.deepcopy(model.g))
 
+
+#: Samples of a new record from which ``x0="estimate"`` / :meth:`RobustNSSMEstimator.initial_state`
+#: estimate its first state.
+INITIAL_SAMPLES = 50
 
 #: Below this robust R² of the smoothed outputs against ``y``, a fit is reported as explaining nothing.
 EXPLAINED_FLOOR = 0.05
