@@ -544,6 +544,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         message = self._rejection_message(best)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
+        message = _noise_absorbing_message(self.dof_, self.outlier_weights_)
+        if message:
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
         explained, simulated = _explained_fraction(best, data)
         if explained >= EXPLAINED_FLOOR and simulated < 0.0:
             warnings.warn(
@@ -1063,6 +1066,31 @@ def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
 #: Samples of a new record from which ``x0="estimate"`` / :meth:`RobustNSSMEstimator.initial_state`
 #: estimate its first state.
 INITIAL_SAMPLES = 50
+
+#: A fitted dof below this (tails heavier than Cauchy's), or more than DOWNWEIGHTED_SHARE of the
+#: samples with an outlier weight below 0.5, is reported: the noise model may be absorbing model
+#: error (genuinely Cauchy noise down-weights about a third of the samples).
+DOF_FLOOR = 1.0
+DOWNWEIGHTED_SHARE = 0.4
+
+
+def _noise_absorbing_message(dof, weights) -> str | None:
+    """Words for a fit whose noise model explains too much (``None`` if it does not)."""
+    ws = weights if isinstance(weights, list) else [weights]
+    w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
+    w = w[np.isfinite(w)]
+    share = float(np.mean(w < 0.5)) if w.size else 0.0
+    low = np.min(np.atleast_1d(dof)) < DOF_FLOOR
+    if not low and share <= DOWNWEIGHTED_SHARE:
+        return None
+    return (
+        f"the measurement noise absorbs much of the data: dof {np.round(np.atleast_1d(dof), 2).tolist()}, "
+        f"{100 * share:.0f} % of the samples have an outlier weight below 0.5. Unless the sensor "
+        "noise really is that heavy-tailed, the noise model is absorbing what f and g cannot explain "
+        "(model error, not outliers): check the residuals (torch_nssm.diagnostics), raise the lower "
+        "dof bound (dof_bounds=(2.0, 1000.0)) or hold it (fit_dof=False), or improve the model"
+    )
+
 
 #: Below this robust R² of the smoothed outputs against ``y``, a fit is reported as explaining nothing.
 EXPLAINED_FLOOR = 0.05

@@ -241,3 +241,20 @@ def test_restarts_reach_the_right_basin_when_g_has_the_wrong_scale():
         good.set_params(g__c=0.05).fit(d.u, y)
     assert best.f_.b.item() > 0.8 and abs(best.g_.c.item() - 0.1) < 0.02
     assert best.log_likelihood_ > good.log_likelihood_ - 10.0
+
+
+def test_a_noise_model_that_absorbs_the_data_is_reported():
+    """Model error instead of outliers: a g that cannot represent y makes the t noise collapse and
+    down-weight a large share of the samples; the user is told, with what to do."""
+    from torch_nssm.estimator import _noise_absorbing_message
+
+    assert _noise_absorbing_message(1.5, np.full(100, 0.9)) is None  # the paper's 10 % outliers
+    msg = _noise_absorbing_message(0.6, np.r_[np.full(50, 0.2), np.full(50, 0.9)])
+    assert "dof [0.6]" in msg and "50 % of the samples" in msg and "dof_bounds" in msg
+    assert _noise_absorbing_message(np.array([0.7, 12.0]), np.full((10, 2), 0.9)) is not None
+    d = make_paper_example(n_samples=200, outlier_fraction=0.1, random_state=1)
+    with pytest.warns(RuntimeWarning, match=r"the measurement noise absorbs much of the data: dof \[0.5\]"):
+        _est(dof_init=0.5, fit_dof=False).fit(d.u, d.y)
+    with warnings.catch_warnings():
+        warnings.filterwarnings("error", message=".*absorbs much.*")
+        _est().fit(d.u, d.y)  # the estimated dof (~1.5) on the paper's data: nothing to report
