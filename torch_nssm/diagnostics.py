@@ -18,6 +18,12 @@ means removed first; a residual mean that differs significantly from zero is rep
 The band holds for each lag on its own: for white residuals some lag out of 25 leaves a 99 % band
 with probability ``1 - 0.99**25 = 22 %``, so an isolated excursion at a large lag is weak
 evidence; a run of flagged small lags is strong evidence.
+
+The tests are *linear*.  An error that reaches the output through an even nonlinearity around a
+symmetric operating point can escape them: in the paper's example ``y = c cos(x)`` with a
+zero-mean input, a missing input path shows up as ``-c sin(x_k) b u_{k-1}``, whose correlation
+with ``u_{k-1}`` averages out; the same model error is flagged at lag 1 when the state works
+around ``pi / 2``.  Passing the tests is evidence, not proof, of an adequate model.
 """
 
 from __future__ import annotations
