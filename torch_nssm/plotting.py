@@ -1,4 +1,4 @@
-"""Plots of a fit: parameter trajectories, flagged outliers, smoothed states with bands.
+"""Plots of a fit: parameter trajectories, flagged outliers, smoothed states with bands, residual tests.
 
 Each function draws on the ``ax`` it is given (or on a new figure) and returns its Axes, so plots
 compose with the rest of a matplotlib figure.  matplotlib is imported when a function is called.
@@ -13,7 +13,7 @@ from sklearn.exceptions import NotFittedError
 
 from .inference.results import StateEstimate
 
-__all__ = ["plot_history", "plot_outliers", "plot_states"]
+__all__ = ["plot_history", "plot_outliers", "plot_residuals", "plot_states"]
 
 #: Entries of ``history_`` that are covariance matrices: only their upper triangle is drawn.
 _SYMMETRIC = ("Rw", "Rv", "x0_cov")
@@ -306,3 +306,77 @@ def plot_states(
     ax.set_ylabel("state")
     ax.legend(fontsize="small", loc="best")
     return ax
+
+
+def _correlation_panel(a, lags, values, band, outside, title, xlabel):
+    a.axhspan(-band, band, color="0.85", linewidth=0, label="band", zorder=0)
+    a.axhline(0.0, color="0.4", linewidth=0.8, zorder=1)
+    a.vlines(lags, 0.0, values, color="C0", linewidth=1.0, zorder=2)
+    a.plot(lags[~outside], values[~outside], "o", color="C0", markersize=3, zorder=3)
+    if outside.any():
+        a.plot(lags[outside], values[outside], "o", color="C3", markersize=5, zorder=4, label="outside")
+    a.set_title(title, fontsize="medium")
+    a.set_xlabel(xlabel)
+
+
+def plot_residuals(analysis, ax=None):
+    """Residual analysis (MATLAB's ``resid``): the correlations with their confidence band.
+
+    One row per output: the autocorrelation of its residuals (lags ``0..max_lag``), then one
+    panel per input with the cross-correlation of that input and the residuals (lags
+    ``-max_lag..max_lag``; positive: residuals against past inputs).  The band is shaded;
+    values outside it are drawn in red.
+
+    Parameters
+    ----------
+    analysis : ResidualAnalysis
+        From :func:`torch_nssm.diagnostics.residual_analysis`.
+    ax : matplotlib Axes or sequence of Axes, optional
+        ``None``: a new figure of ``p`` rows and ``1 + nu`` columns.  A sequence (or array) of
+        ``p * (1 + nu)`` Axes, filled row by row; one Axes when there is one panel (one output,
+        no input).
+
+    Returns
+    -------
+    ndarray of Axes, shape (p, 1 + nu)
+    """
+    from .diagnostics import ResidualAnalysis
+
+    if not isinstance(analysis, ResidualAnalysis):
+        raise TypeError(
+            f"analysis must be a ResidualAnalysis (from residual_analysis), got {type(analysis).__name__}"
+        )
+    nu = analysis.cross_correlation.shape[0]
+    p = analysis.autocorrelation.shape[0]
+    ncols = 1 + nu
+    if ax is None:
+        plt = _pyplot()
+        _, grid = plt.subplots(p, ncols, figsize=(4.0 * ncols, 2.8 * p), squeeze=False)
+    else:
+        axes = np.asarray([ax] if not isinstance(ax, (Sequence, np.ndarray)) else ax, dtype=object).ravel()
+        if len(axes) != p * ncols:
+            raise ValueError(f"ax holds {len(axes)} Axes for {p * ncols} panels ({p} outputs x (1 + {nu}))")
+        grid = axes.reshape(p, ncols)
+    pct = f"{100 * analysis.level:g} %"
+    for j in range(p):
+        band = float(analysis.band[j])
+        _correlation_panel(
+            grid[j, 0],
+            analysis.lags,
+            analysis.autocorrelation[j],
+            band,
+            analysis.outside_auto[j],
+            f"output {j}: residual autocorrelation ({pct} band)",
+            "lag",
+        )
+        for i in range(nu):
+            _correlation_panel(
+                grid[j, 1 + i],
+                analysis.cross_lags,
+                analysis.cross_correlation[i, j],
+                band,
+                analysis.outside_cross[i, j],
+                f"input {i} -> output {j}: cross-correlation",
+                "lag (> 0: past inputs)",
+            )
+    return grid
