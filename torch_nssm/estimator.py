@@ -950,6 +950,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         filt = self._filter(model, data, self._generator(device, random_state))
         return float(filt.log_likelihood.sum())
 
+    def residual_analysis(
+        self, u, y, *, max_lag: int = 25, horizon: int = 1, level: float = 0.99, robust: bool = True,
+        random_state=None,
+    ):
+        """Whiteness and independence tests of the prediction errors, as MATLAB's ``resid``
+        (:func:`torch_nssm.diagnostics.residual_analysis`; ``plotting.plot_residuals`` draws them)."""
+        from .diagnostics import residual_analysis
+
+        options = dict(max_lag=max_lag, horizon=horizon, level=level, robust=robust)
+        return residual_analysis(self, u, y, random_state=random_state, **options)
+
     @with_thread_limit
     def initial_state(self, u, y, *, random_state=None):
         """The first state of a new record, estimated from its first outputs.

@@ -245,3 +245,25 @@ def test_plot_residuals(paper_fits):
         plot_residuals(a, ax=grid.ravel())
     with pytest.raises(TypeError, match="ResidualAnalysis"):
         plot_residuals({"lags": []})
+
+
+def test_the_estimator_method_is_the_function():
+    """``est.residual_analysis(u, y)`` is :func:`residual_analysis` of the estimator."""
+    import warnings
+
+    from torch_nssm import RobustNSSMEstimator
+    from torch_nssm.datasets import make_paper_example
+    from torch_nssm.diagnostics import residual_analysis
+    from torch_nssm.models import PaperObservation, PaperTransition
+
+    d = make_paper_example(n_samples=150, outlier_fraction=0.1, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = RobustNSSMEstimator(
+            PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_particles=40, n_iter=3,
+            random_state=0,
+        ).fit(d.u, d.y)
+    a = est.residual_analysis(d.u, d.y, max_lag=10, random_state=1)
+    b = residual_analysis(est, d.u, d.y, max_lag=10, random_state=1)
+    np.testing.assert_allclose(a.autocorrelation, b.autocorrelation)
+    assert a.summary() == b.summary()
