@@ -277,3 +277,25 @@ def test_warm_start_errors(data):
         warm_start_estimator(est.set_params(x0_mean=None), data.u, data.y)
     with pytest.raises(ValueError, match="same number of records"):
         warm_start_estimator(_neural_estimator(1), [data.u, data.u], [data.y])
+
+
+def test_linear_blocks_forward_equals_features_times_theta():
+    """LinearTransition/LinearObservation evaluate x A^T + u B^T (+ c) directly (the filter calls them
+    at every step); that is the function features() @ theta that the closed-form M-step fits."""
+    from torch_nssm.core.parametric import LinearInParameters
+    from torch_nssm.warm_start import LinearObservation, LinearTransition
+
+    gen = torch.Generator().manual_seed(0)
+    modules = [
+        LinearTransition(2, 1, bias=True),
+        LinearTransition(3, 0),
+        LinearObservation(2, 1, 3, feedthrough=True, d=[0.1, 0.2, 0.3]),
+    ]
+    for m in modules:
+        with torch.no_grad():
+            for p in m.parameters():
+                p.add_(torch.randn(p.shape, generator=gen, dtype=p.dtype))
+        x = torch.randn(4, 6, m.nx, generator=gen, dtype=DTYPE)
+        u = torch.randn(4, 6, m.nu, generator=gen, dtype=DTYPE)
+        with torch.no_grad():
+            torch.testing.assert_close(m(x, u), LinearInParameters.forward(m, x, u), rtol=1e-12, atol=1e-12)

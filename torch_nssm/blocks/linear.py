@@ -84,6 +84,12 @@ class LinearTransition(LinearInParameters):
         if self.bias:
             self.c = nn.Parameter(torch.zeros(nx, **kw))
 
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        # the same function as features() @ theta, without building the Kronecker features (the
+        # particle filter calls f at every step; the M-step's normal equations use features())
+        out = x @ self.A.T + u @ self.B.T
+        return out + self.c if self.bias else out
+
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., nx, P)`` over ``(A, B[, c])`` and a zero offset ``(..., nx)``."""
         x, u = broadcast_leading(x, u)
@@ -147,6 +153,10 @@ class LinearObservation(LinearInParameters):
         )
         off = np.zeros(p) if d is None else V.check_vector_array(d, "d", p)
         self.d = nn.Parameter(torch.as_tensor(off, **kw), requires_grad=bool(fit_offset))
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        # features() @ theta without the Kronecker features, as LinearTransition.forward
+        return x @ self.C.T + u @ self.D.T + self.d
 
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., p, P)`` over ``(C, D, d)`` and a zero offset ``(..., p)``."""
