@@ -28,6 +28,7 @@ from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model, symmetric_pd
 from .core.parametric import LinearInParameters
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
+from .estimation.first_stage import simulation_error_fit
 from .estimation.loop import EMOptions, EMResult, run_em
 from .estimation.mstep import MStepOptions
 from .estimation.solvers import SOLVERS, SolverSettings
@@ -115,6 +116,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         squares, for ``g`` linear in its parameters) and its own particle seed.
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (docs/design.md).
+    first_stage : {None, "simulation"}, default=None
+        ``"simulation"``: before EM, fit ``f``, ``g`` and the first state by robust (Cauchy) simulation
+        error over windows of ``FIRST_STAGE_WINDOW`` samples (multiple shooting), and start EM there
+        (:mod:`torch_nssm.estimation.first_stage`); ``first_stage_`` reports the simulation RMSE
+        before and after.  Restarts (``n_init``) jitter around the first stage's result.
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
@@ -223,6 +229,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         tol: float = 1e-3,
         n_init: int = 1,
         init_jitter: float = 1.0,
+        first_stage: str | None = None,
         warm_start: bool = False,
         optimizer: str = "lbfgs",
         max_iter_mstep: int = 20,
@@ -259,6 +266,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.tol = tol
         self.n_init = n_init
         self.init_jitter = init_jitter
+        self.first_stage = first_stage
         self.warm_start = warm_start
         self.optimizer = optimizer
         self.max_iter_mstep = max_iter_mstep
@@ -341,6 +349,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_choice(self.noise, "noise", sorted(NOISE_MODELS))
         V.check_choice(self.optimizer, "optimizer", sorted(SOLVERS))
         V.check_choice(self.smoother, "smoother", sorted(SMOOTHERS))
+        if self.first_stage is not None:
+            V.check_choice(self.first_stage, "first_stage", ["simulation"])
         V.check_choice(self.resampling, "resampling", sorted(RESAMPLING_SCHEMES))
         V.check_positive(self.n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
         if self.n_particles_final is not None:
@@ -508,6 +518,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             base, n_runs = self._fitted_model(device), 1
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
+        if not warm and self.first_stage == "simulation":
+            base = self._first_stage(base, data)
         rs = check_random_state(self.random_state)
         limit = _divergence_limit(base, data)
         if not warm:
@@ -583,6 +595,21 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 stacklevel=3,
             )
         return self
+
+    def _first_stage(self, base: StateSpaceModel, data: SequenceBatch) -> StateSpaceModel:
+        """The start after the robust simulation-error fit (``first_stage_`` says what it did)."""
+        report = simulation_error_fit(base, data, segment_length=FIRST_STAGE_WINDOW)
+        self.first_stage_ = report
+        if not report.accepted:
+            warnings.warn(
+                "the first stage (robust simulation-error fit) did not improve the start; EM starts "
+                "from the given values",
+                RuntimeWarning,
+                stacklevel=4,
+            )
+            return base
+        starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
+        return replace(base, x0_mean=starts.mean(0))
 
     def _rejection_message(self, run: EMResult) -> str | None:
         """Words for the M-step updates that were undone in ``run`` (``None`` if none were)."""
@@ -1072,6 +1099,19 @@ def _seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.
 
 def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
     return replace(model, f=copy.deepcopy(model.f), g=copy.deepcopy(model.g))
+
+
+#: Window of the first stage's multiple shooting (samples).
+FIRST_STAGE_WINDOW = 50
+
+
+def _first_windows(data: SequenceBatch, window: int) -> list[int]:
+    """Index, among all windows, of each record's first window (as the first stage orders them)."""
+    out, i = [], 0
+    for n in data.lengths.tolist():
+        out.append(i)
+        i += sum(1 for s in range(0, n, window) if min(s + window, n) - s >= 2)
+    return out
 
 
 #: Samples of a new record from which ``x0="estimate"`` / :meth:`RobustNSSMEstimator.initial_state`

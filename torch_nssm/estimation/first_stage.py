@@ -1,0 +1,167 @@
+"""A first stage before EM: fit ``f`` and ``g`` to the record by robust simulation error.
+
+EM from a poor start converges slowly, or into the wrong basin, when the process noise can explain
+what ``f`` gets wrong (issue #13, docs/design.md).  This stage minimises a robust (Cauchy) loss of
+the *noise-free simulation*'s output errors over the free parameters of ``f`` and ``g`` and each
+record's first state: the output-error fit an engineer tries first, here with a loss that
+outliers do not steer.  Long or unstable records are cut into windows of ``segment_length``
+samples, each with its own free initial state (multiple shooting).  EM then starts there and
+estimates the noise, the outlier weights and the final parameters.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .._stats import MAD_TO_STD
+from ..core.model import SequenceBatch, StateSpaceModel
+from ..inference.prediction import free_run
+
+__all__ = ["FirstStageReport", "simulation_error_fit"]
+
+
+@dataclass
+class FirstStageReport:
+    """What the first stage did.
+
+    Attributes
+    ----------
+    rmse_before, rmse_after : float
+        Root mean square of the simulation's output errors over the observed samples (outliers
+        included) at the start and at the result.
+    loss_before, loss_after : float
+        The robust loss minimised (mean Cauchy loss of the scaled errors).
+    accepted : bool
+        Whether the result was kept (the loss decreased and everything stayed finite).
+    n_windows : int
+        Number of simulation windows (1 per record without ``segment_length``).
+    first_states : Tensor or None
+        The fitted first state of each window ``(n_windows, nx)`` (``None`` if not accepted).
+    """
+
+    rmse_before: float
+    rmse_after: float
+    loss_before: float
+    loss_after: float
+    accepted: bool
+    n_windows: int
+    first_states: Tensor | None = None
+
+
+def _window_starts(data: SequenceBatch, segment_length: int | None) -> list[tuple[int, int, int]]:
+    """``(record, start, stop)`` of each window (windows shorter than 2 samples are dropped)."""
+    out = []
+    for b, n in enumerate(data.lengths.tolist()):
+        step = n if segment_length is None else segment_length
+        out += [(b, s, min(s + step, n)) for s in range(0, n, step) if min(s + step, n) - s >= 2]
+    return out
+
+
+def _simulate(model: StateSpaceModel, x0: Tensor, u: Tensor) -> Tensor:
+    """Outputs ``(T, B, p)`` of the noise-free simulation from ``x0`` ``(B, nx)``."""
+    x = x0.unsqueeze(1)  # (B, 1, nx)
+    outputs = []
+    for k in range(u.shape[0]):
+        outputs.append(model.observation(x, u[k])[:, 0])
+        if k + 1 < u.shape[0]:
+            x = model.transition(x, u[k])
+    return torch.stack(outputs)
+
+
+def simulation_error_fit(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    *,
+    max_iter: int = 100,
+    segment_length: int | None = None,
+) -> FirstStageReport:
+    """Fit ``model.f``, ``model.g`` (in place) and the first states by robust simulation error.
+
+    Parameters
+    ----------
+    model : StateSpaceModel
+        The start; its modules' free parameters are updated in place if the fit is accepted.
+    data : SequenceBatch
+    max_iter : int
+        LBFGS iterations.
+    segment_length : int, optional
+        Cut the records into windows of this many samples, each with a free first state (for long
+        records or unstable simulations); one window per record if omitted.
+
+    Returns
+    -------
+    FirstStageReport
+        With the fitted first state of every window (``first_states``); ``model.x0_mean`` is
+        not changed.
+    """
+    spans = _window_starts(data, segment_length)
+    windows = SequenceBatch.from_sequences(
+        [data.u[s:e, b] for b, s, e in spans], [data.y[s:e, b] for b, s, e in spans]
+    )
+    with torch.no_grad():  # each window starts where the start model's simulation of its record is
+        states, _ = free_run(model, data.u)
+    x0 = torch.stack([states[s, b] for b, s, _ in spans]).requires_grad_(True)
+    mask = windows.obs_mask
+    y = torch.where(mask, windows.y, torch.zeros_like(windows.y))
+    params = [p for m in (model.f, model.g) for p in m.parameters() if p.requires_grad] + [x0]
+    backup = (copy.deepcopy(model.f.state_dict()), copy.deepcopy(model.g.state_dict()))
+
+    def errors() -> Tensor:
+        return torch.where(mask, y - _simulate(model, x0, windows.u), torch.zeros_like(y))
+
+    with torch.no_grad():
+        e0 = errors()
+    n_obs = mask.sum().clamp_min(1)
+    finite0 = bool(torch.isfinite(e0).all())
+    rmse_before = float(torch.sqrt((e0**2).sum() / n_obs)) if finite0 else math.inf
+    # the scale of the Cauchy loss: a robust spread of the starting errors, per output (fixed)
+    scale = None
+    if finite0:
+        spreads = [
+            MAD_TO_STD * torch.median(e0[..., j][mask[..., j]].abs()) if bool(mask[..., j].any())
+            else e0.new_ones(())
+            for j in range(e0.shape[-1])
+        ]
+        scale = torch.stack(spreads).clamp_min(1e-12)
+
+    def loss_of(e: Tensor) -> Tensor:
+        return (torch.log1p((e / scale) ** 2) * mask).sum() / n_obs
+
+    if not finite0 or not params[:-1]:
+        return FirstStageReport(rmse_before, rmse_before, math.nan, math.nan, False, windows.n_sequences)
+    with torch.no_grad():
+        loss_before = float(loss_of(e0))
+    opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_of(errors())
+        if not bool(torch.isfinite(loss)):
+            raise FloatingPointError
+        loss.backward()
+        return loss
+
+    try:
+        opt.step(closure)
+        with torch.no_grad():
+            e1 = errors()
+            loss_after = float(loss_of(e1))
+        accepted = math.isfinite(loss_after) and loss_after < loss_before
+    except (FloatingPointError, RuntimeError, IndexError):
+        accepted, loss_after, e1 = False, math.nan, e0
+    for p in params:
+        p.grad = None
+    if not accepted:
+        model.f.load_state_dict(backup[0])
+        model.g.load_state_dict(backup[1])
+        n = windows.n_sequences
+        return FirstStageReport(rmse_before, rmse_before, loss_before, loss_before, False, n)
+    rmse_after = float(torch.sqrt((e1**2).sum() / n_obs))
+    return FirstStageReport(
+        rmse_before, rmse_after, loss_before, loss_after, True, windows.n_sequences, x0.detach()
+    )
