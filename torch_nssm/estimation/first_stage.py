@@ -138,12 +138,19 @@ def simulation_error_fit(
         loss_before = float(loss_of(e0))
     opt = torch.optim.LBFGS(params, lr=1.0, max_iter=max_iter, line_search_fn="strong_wolfe")
 
+    penalty = torch.tensor(1e6 * (1.0 + abs(loss_before)), dtype=e0.dtype, device=e0.device)
+
     def closure():
         opt.zero_grad()
         loss = loss_of(errors())
         if not bool(torch.isfinite(loss)):
-            raise FloatingPointError
+            # a step into a diverging simulation: a huge finite loss makes the line search back off
+            return penalty
         loss.backward()
+        for p in params:
+            if p.grad is not None and not bool(torch.isfinite(p.grad).all()):
+                p.grad = torch.zeros_like(p)
+                return penalty
         return loss
 
     try:
