@@ -1044,7 +1044,10 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
         if isinstance(estimator.random_state, int):
             est_b.random_state = estimator.random_state + b
         estimators.append(est_b)
-        models.append(est_b._initial_model(datas[-1], device))
+        start = est_b._initial_model(datas[-1], device)
+        if estimator.first_stage == "simulation":  # per data set, before the batched EM
+            start = est_b._first_stage(start, datas[-1])
+        models.append(start)
     all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
     verbose = estimator.verbose > 0 if show_progress is None else show_progress
     options = estimator._em_options(f"robust EM x{n_sets}")

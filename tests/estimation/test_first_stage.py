@@ -64,3 +64,18 @@ def test_first_stage_moves_em_out_of_the_wrong_basin():
     with pytest.raises(ValueError, match="first_stage"):
         bad.fit(d.u, y)
     assert isinstance(staged.first_stage_.first_states, torch.Tensor)
+
+
+def test_fit_independent_runs_the_first_stage_per_data_set():
+    from torch_nssm import fit_independent
+
+    sets = [make_paper_example(n_samples=150, random_state=s) for s in (3, 4)]
+    proto = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_particles=40, n_iter=3,
+        random_state=0, first_stage="simulation",
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fits = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
+    assert all(f.first_stage_.accepted for f in fits)
+    assert fits[0].first_stage_.rmse_after != fits[1].first_stage_.rmse_after
