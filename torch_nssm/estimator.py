@@ -518,8 +518,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             base, n_runs = self._fitted_model(device), 1
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
+        staged = None
         if not warm and self.first_stage == "simulation":
             base = self._first_stage(base, data)
+            staged = _copy_model(base) if self.first_stage_.accepted else None
         rs = check_random_state(self.random_state)
         limit = _divergence_limit(base, data)
         if not warm:
@@ -556,6 +558,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         message = self._rejection_message(best)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
+        if staged is not None:
+            self._compare_with_first_stage(staged, best.model, data)
         message = _noise_absorbing_message(self.dof_, self.outlier_weights_)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
@@ -610,6 +614,26 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             return base
         starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
         return replace(base, x0_mean=starts.mean(0))
+
+    def _compare_with_first_stage(self, staged: StateSpaceModel, fitted: StateSpaceModel, data) -> None:
+        """Record, and report when worse, the free run of the EM fit against the first stage's."""
+        yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+        rmse = []
+        for model in (staged, fitted):
+            y_hat = torch.cat(data.unpad(prediction.free_run(model, data.u)[1])).cpu().numpy()
+            err = (yt - y_hat)[np.isfinite(yt)]
+            rmse.append(float(robust_scale(err, axis=None, center=0.0)) if err.size else math.nan)
+        self.first_stage_.free_run_scale_before_em = rmse[0]
+        self.first_stage_.free_run_scale_after_em = rmse[1]
+        if np.isfinite(rmse[1]) and rmse[1] > 1.1 * rmse[0]:
+            warnings.warn(
+                f"EM made the model simulate worse than its first stage did (robust scale of the "
+                f"training free-run errors {rmse[1]:.4g} after EM, {rmse[0]:.4g} after the first stage): "
+                "the process noise is carrying what f should simulate. For a simulation model hold it "
+                "(fit_Rw=False with a small Rw_init), or keep the first stage's parameters",
+                RuntimeWarning,
+                stacklevel=4,
+            )
 
     def _rejection_message(self, run: EMResult) -> str | None:
         """Words for the M-step updates that were undone in ``run`` (``None`` if none were)."""

@@ -42,6 +42,9 @@ class FirstStageReport:
         Number of simulation windows (1 per record without ``segment_length``).
     first_states : Tensor or None
         The fitted first state of each window ``(n_windows, nx)`` (``None`` if not accepted).
+    free_run_scale_before_em, free_run_scale_after_em : float
+        Set by the estimator: the robust scale (1.4826 MAD about 0) of the training record's
+        free-run output errors of the first stage's model and of the EM fit.
     """
 
     rmse_before: float
@@ -51,6 +54,8 @@ class FirstStageReport:
     accepted: bool
     n_windows: int
     first_states: Tensor | None = None
+    free_run_scale_before_em: float = math.nan
+    free_run_scale_after_em: float = math.nan
 
 
 def _window_starts(data: SequenceBatch, segment_length: int | None) -> list[tuple[int, int, int]]:
