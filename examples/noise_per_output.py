@@ -20,25 +20,17 @@ import torch
 
 from torch_nssm import RobustNSSMEstimator
 from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+from torch_nssm.datasets.two_sensors import TWO_SENSOR_A, TWO_SENSOR_B, TWO_SENSOR_RV, make_two_sensor_example
 
-A_TRUE = np.array([[0.8, 0.2], [0.0, 0.6]])
-B_TRUE = np.array([[1.0], [0.5]])
-RW_TRUE, RV_TRUE = 0.05, 0.1
+A_TRUE, B_TRUE, RV_TRUE = TWO_SENSOR_A, TWO_SENSOR_B, TWO_SENSOR_RV
 FAMILIES = {"gaussian": "Gaussian", "student-t": "joint t", "student-t-per-output": "per-output t"}
 COLORS = {"gaussian": "tab:gray", "student-t": "tab:red", "student-t-per-output": "tab:blue"}
 
 
-def glitch_record(n: int, seed: int, rate: float = 0.1, amplitude=(4.0, 8.0)):
-    """Inputs, outputs, noise-free outputs and the glitch mask of one record."""
-    rng = np.random.default_rng(seed)
-    u = rng.normal(size=(n, 1))
-    x = np.zeros((n, 2))
-    for k in range(n - 1):
-        x[k + 1] = A_TRUE @ x[k] + B_TRUE @ u[k] + rng.normal(scale=math.sqrt(RW_TRUE), size=2)
-    y = x + rng.normal(scale=math.sqrt(RV_TRUE), size=(n, 2))
-    glitch = rng.random(n) < rate
-    y[glitch, 0] += rng.choice([-1.0, 1.0], glitch.sum()) * rng.uniform(*amplitude, glitch.sum())
-    return u, y, x, glitch
+def glitch_record(n: int, seed: int):
+    """Inputs, outputs, states and the glitch mask of one record."""
+    d = make_two_sensor_example(n, random_state=seed)
+    return d.u, d.y, d.x, d.outlier_mask
 
 
 def free_run_truth(u: np.ndarray) -> np.ndarray:

@@ -11,7 +11,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["squared_norm", "linear_combination", "small_matmul", "broadcast_leading", "time_blocks"]
+__all__ = [
+    "squared_norm",
+    "linear_combination",
+    "small_matmul",
+    "broadcast_leading",
+    "time_blocks",
+    "inverse_cholesky",
+]
 
 #: Rows (time steps x sequences x particles) per block of the whole-record passes that follow the
 #: filter and smoother (latent scales, M-step sums): each block's temporaries stay in cache, where
@@ -57,3 +64,10 @@ def time_blocks(T: int, rows_per_step: int, max_rows: int = BLOCK_ROWS):
     step = max(1, max_rows // max(1, rows_per_step))
     for start in range(0, T, step):
         yield slice(start, min(start + step, T))
+
+
+def inverse_cholesky(S: Tensor) -> Tensor:
+    """``C`` with ``C^T C = S^-1``: the inverse of the lower Cholesky factor of ``S`` ``(..., n, n)``."""
+    chol = torch.linalg.cholesky(S)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device).expand_as(chol)
+    return torch.linalg.solve_triangular(chol, eye, upper=False)

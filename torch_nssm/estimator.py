@@ -22,7 +22,7 @@ from sklearn.utils import check_random_state
 from torch import nn
 
 from . import _validation as V
-from ._stats import robust_scale
+from ._stats import MAD_TO_STD, robust_scale
 from ._threads import limited_threads, with_thread_limit
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model, symmetric_pd
@@ -523,9 +523,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             base = self._first_stage(base, data)
             staged = _copy_model(base) if self.first_stage_.accepted else None
         rs = check_random_state(self.random_state)
-        limit = _divergence_limit(base, data)
-        if not warm:
-            _warn_if_divergent(base, data, limit)
+        limit = _divergence_limit(base, data, warn=not warm)
         runs: list[EMResult] = []
         for r in range(n_runs):
             generator = _seeded_generator(device, rs)  # run 0: the same seed as _generator()
@@ -558,12 +556,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         message = self._rejection_message(best)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
+        free_run_outputs = prediction.free_run(best.model, data.u)[1]  # (T, B, p) of the fitted model
         if staged is not None:
-            self._compare_with_first_stage(staged, best.model, data)
+            self._compare_with_first_stage(staged, free_run_outputs, data)
         message = _noise_absorbing_message(self.dof_, self.outlier_weights_)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
-        explained, simulated = _explained_fraction(best, data)
+        explained, simulated = _explained_fraction(best, data, free_run_outputs)
         if explained >= EXPLAINED_FLOOR and simulated < 0.0:
             warnings.warn(
                 f"the model's noise-free simulation explains none of y (robust R² of the free run "
@@ -615,12 +614,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
         return replace(base, x0_mean=starts.mean(0))
 
-    def _compare_with_first_stage(self, staged: StateSpaceModel, fitted: StateSpaceModel, data) -> None:
+    def _compare_with_first_stage(self, staged: StateSpaceModel, fitted_outputs: torch.Tensor, data) -> None:
         """Record, and report when worse, the free run of the EM fit against the first stage's."""
         yt = torch.cat(data.unpad(data.y)).cpu().numpy()
         rmse = []
-        for model in (staged, fitted):
-            y_hat = torch.cat(data.unpad(prediction.free_run(model, data.u)[1])).cpu().numpy()
+        for outputs in (prediction.free_run(staged, data.u)[1], fitted_outputs):
+            y_hat = torch.cat(data.unpad(outputs)).cpu().numpy()
             err = (yt - y_hat)[np.isfinite(yt)]
             rmse.append(float(robust_scale(err, axis=None, center=0.0)) if err.size else math.nan)
         self.first_stage_.free_run_scale_before_em = rmse[0]
@@ -1128,6 +1127,9 @@ def _copy_model(model: StateSpaceModel) -> StateSpaceModel:
     return replace(model, f=copy.deepcopy(model.f), g=copy.deepcopy(model.g))
 
 
+#: Tuning constant of the Cauchy weights (95 % efficiency at the normal).
+CAUCHY_TUNING = 2.385
+
 #: Window of the first stage's multiple shooting (samples).
 FIRST_STAGE_WINDOW = 50
 
@@ -1175,7 +1177,9 @@ EXPLAINED_FLOOR = 0.05
 
 
 @torch.no_grad()
-def _explained_fraction(run: EMResult, data: SequenceBatch) -> tuple[float, float]:
+def _explained_fraction(
+    run: EMResult, data: SequenceBatch, free_run_outputs: torch.Tensor
+) -> tuple[float, float]:
     """Robust R² against ``y`` of the smoothed outputs ``sum_l W_{k|N}^l g(x_k^l, u_k)`` and of the
     noise-free simulation (NaN scores count as explained: nothing to report)."""
     est = run.estep
@@ -1183,24 +1187,22 @@ def _explained_fraction(run: EMResult, data: SequenceBatch) -> tuple[float, floa
     w = torch.softmax(est.smoother.log_weights, dim=-1).unsqueeze(-1)
     yt = torch.cat(data.unpad(data.y)).cpu().numpy()
     scores = []
-    for y_hat in ((w * g).sum(2), prediction.free_run(run.model, data.u)[1]):
+    for y_hat in ((w * g).sum(2), free_run_outputs):
         score = robust_r2_score(yt, torch.cat(data.unpad(y_hat)).cpu().numpy())
         scores.append(score if np.isfinite(score) else 1.0)
     return scores[0], scores[1]
 
 
-def _divergence_limit(model: StateSpaceModel, data: SequenceBatch) -> float:
-    """How far a simulation may go before it counts as diverging: 1e3 times the larger of the start's
-    own free-run range and the prior's scale (at least 1e3)."""
+def _divergence_limit(model: StateSpaceModel, data: SequenceBatch, warn: bool) -> float:
+    """How far a restart's simulation may go before it counts as diverging: 1e3 times the larger of
+    the start's own free-run range and the prior's scale.  With ``warn``, a start whose own
+    simulation leaves every finite bound (1e6 times that scale) is named in a warning."""
     states, _ = prediction.free_run(model, data.u[:1000])
     finite = states[torch.isfinite(states)]
     prior = float(model.x0_mean.abs().max() + model.x0_cov.diagonal().sqrt().max())
     own = float(finite.abs().max()) if finite.numel() else 0.0
-    return 1e3 * max(1.0, prior, own if own < 1e6 else 0.0)
-
-
-def _warn_if_divergent(model: StateSpaceModel, data: SequenceBatch, limit: float) -> None:
-    step = prediction.divergence(model, data.u, limit=1e6 * max(1.0, limit / 1e3))
+    scale = max(1.0, prior, own if own < 1e6 else 0.0)
+    step = prediction.first_divergent_step(states, 1e6 * scale) if warn else None
     if step is not None:
         warnings.warn(
             f"the noise-free simulation of f from x0_mean diverges at step {step} with the initial "
@@ -1209,6 +1211,7 @@ def _warn_if_divergent(model: StateSpaceModel, data: SequenceBatch, limit: float
             RuntimeWarning,
             stacklevel=4,
         )
+    return 1e3 * scale
 
 
 def _stable_jitter(
@@ -1247,8 +1250,9 @@ def _g_fitted_to_y(model: StateSpaceModel, data: SequenceBatch, n_reweight: int 
     for _ in range(n_reweight + 1):
         g.solve_weighted_least_squares(x, u, y, weight, precision)
         r = torch.nan_to_num(y - g(x, u)) * m
-        scale = float(torch.median(r.abs().sum(-1))) * 1.4826 + 1e-300
-        weight = 1.0 / (1.0 + (r.abs().sum(-1) / (2.385 * scale)) ** 2)
+        size = r.abs().sum(-1)
+        scale = MAD_TO_STD * float(torch.median(size)) + 1e-300  # robust scale about 0
+        weight = 1.0 / (1.0 + (size / (CAUCHY_TUNING * scale)) ** 2)  # Cauchy IRLS weights
     if not all(bool(torch.isfinite(p).all()) for p in g.parameters()):
         g.load_state_dict(backup)
     return model

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -11,15 +10,6 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
-_REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(autouse=True)
-def _kernel_imports_this_checkout(monkeypatch):
-    """The kernel (which inherits the environment) imports this checkout's ``torch_nssm`` and
-    ``examples/``, not an installed copy."""
-    paths = [str(_REPO), str(_REPO / "examples"), os.environ.get("PYTHONPATH", "")]
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
 
 
 def _run(path: Path):
@@ -68,7 +58,6 @@ def test_stored_notebook_has_outputs():
     code = [c for c in nb.cells if c.cell_type == "code"]
     assert code and all(c.get("execution_count") for c in code)
     assert any(o.get("output_type") == "display_data" for c in code for o in c.outputs)
-
 
 
 # The reproduction notebooks (one per experiment of the paper's Section 4) are tested in

@@ -19,15 +19,6 @@ nbclient = pytest.importorskip("nbclient")
 REPO = Path(__file__).resolve().parents[2]
 NOTEBOOKS = REPO / "notebooks"
 SILVERBOX_DIR = Path(os.environ.get("TORCH_NSSM_SILVERBOX", REPO / ".." / "shared" / "data" / "silverbox"))
-_REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(autouse=True)
-def _kernel_imports_this_checkout(monkeypatch):
-    """The kernel (which inherits the environment) imports this checkout's ``torch_nssm`` and
-    ``examples/``, not an installed copy."""
-    paths = [str(_REPO), str(_REPO / "examples"), os.environ.get("PYTHONPATH", "")]
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
 
 
 def _run_fast(name: str, tmp_path: Path, monkeypatch) -> tuple[object, str]:

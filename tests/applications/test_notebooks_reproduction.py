@@ -8,7 +8,6 @@ a FULL run (so that a reader sees the paper-scale results without running anythi
 from __future__ import annotations
 
 import math
-import os
 import re
 import shutil
 import time
@@ -20,15 +19,6 @@ nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
-_REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture(autouse=True)
-def _kernel_imports_this_checkout(monkeypatch):
-    """The kernel (which inherits the environment) imports this checkout's ``torch_nssm`` and
-    ``examples/``, not an installed copy."""
-    paths = [str(_REPO), str(_REPO / "examples"), os.environ.get("PYTHONPATH", "")]
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
 
 
 #: notebook -> number of figures it shows

@@ -17,24 +17,15 @@ from scipy import stats
 
 from torch_nssm import RobustNSSMEstimator, fit_independent
 from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+from torch_nssm.datasets.two_sensors import TWO_SENSOR_RV, make_two_sensor_example
 
-A_TRUE = np.array([[0.8, 0.2], [0.0, 0.6]])
-B_TRUE = np.array([[1.0], [0.5]])
-RW_TRUE, RV_TRUE = 0.05, 0.1
+RV_TRUE = TWO_SENSOR_RV
 
 
-def glitch_record(n: int, seed: int, rate: float = 0.1, amplitude=(4.0, 8.0)):
-    """``x+ = A x + B u + w``, ``y = x + v`` (Gaussian w, v), with glitches of random sign and
-    size ``amplitude`` added to output 1 only at a fraction ``rate`` of the samples."""
-    rng = np.random.default_rng(seed)
-    u = rng.normal(size=(n, 1))
-    x = np.zeros((n, 2))
-    for k in range(n - 1):
-        x[k + 1] = A_TRUE @ x[k] + B_TRUE @ u[k] + rng.normal(scale=math.sqrt(RW_TRUE), size=2)
-    y = x + rng.normal(scale=math.sqrt(RV_TRUE), size=(n, 2))
-    glitch = rng.random(n) < rate
-    y[glitch, 0] += rng.choice([-1.0, 1.0], glitch.sum()) * rng.uniform(*amplitude, glitch.sum())
-    return u, y, glitch
+def glitch_record(n: int, seed: int, rate: float = 0.1):
+    """Inputs, outputs and the glitch mask of :func:`make_two_sensor_example`."""
+    d = make_two_sensor_example(n, glitch_fraction=rate, random_state=seed)
+    return d.u, d.y, d.outlier_mask
 
 
 def estimator(noise: str, **kw) -> RobustNSSMEstimator:

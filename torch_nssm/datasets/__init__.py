@@ -8,6 +8,8 @@ Every generator draws from ``np.random.default_rng(random_state)`` and returns a
   :func:`make_huang_example`.
 * :mod:`~torch_nssm.datasets.manipulator` -- Section 4.2, the two-link manipulator:
   :func:`make_manipulator` and its constants and physics.
+* :mod:`~torch_nssm.datasets.two_sensors` -- a 2-output linear system whose first sensor
+  glitches: :func:`make_two_sensor_example` (the per-output noise's example).
 
 Each module also holds its system's ready-made ``f`` / ``g`` (collected in :mod:`torch_nssm.models`).
 The Silverbox loader lives with its case study in ``examples/silverbox``.
@@ -39,8 +41,10 @@ from .manipulator import (
     manipulator_transition_matrix,
 )
 from .paper import PAPER_X0_COV, make_gopaluni_example, make_huang_example, make_paper_example
+from .two_sensors import make_two_sensor_example
 
 __all__ = [
+    "make_two_sensor_example",
     "SimulatedData",
     "ManipulatorConstants",
     "make_paper_example",

@@ -144,11 +144,9 @@ def converged(lls: list[float], n_obs: int, tol: float) -> bool:
 
 
 class _Batch:
-    """The active groups' models and data as one batch, and the group of each position."""
+    """The active groups' models and data as one batch (the same order as the groups)."""
 
     def __init__(self, groups: list[int], models: list[StateSpaceModel], data: SequenceBatch, shared: bool):
-        self.groups = groups
-        self.shared = shared
         if shared:
             self.model, self.data = models[0], data
         else:

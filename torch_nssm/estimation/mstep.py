@@ -28,7 +28,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from .._ops import linear_combination, time_blocks
+from .._ops import inverse_cholesky, linear_combination, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
@@ -250,13 +250,6 @@ def _residuals(predict, problem: Regression, mask: Tensor | None = None):
         yield sl, r
 
 
-def _inverse_cholesky(S: Tensor) -> Tensor:
-    """``C`` with ``C^T C = S^-1`` (the inverse of the lower Cholesky factor)."""
-    chol = torch.linalg.cholesky(S)
-    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device).expand_as(chol)
-    return torch.linalg.solve_triangular(chol, eye, upper=False)
-
-
 # ---------------------------------------------------------------------- the updates
 def _stack(values: list[Tensor], groups: _Groups) -> Tensor:
     return values[0] if groups.shared else torch.stack(values)
@@ -268,7 +261,7 @@ def transition_regression(Rw: Tensor, data: SequenceBatch, est: EStepOutput) -> 
     B = data.n_sequences
     Rw = Rw.expand(B, *Rw.shape[-2:]) if Rw.dim() == 2 else Rw
     sm = est.smoother
-    Cw = _inverse_cholesky(Rw).unsqueeze(0)  # (1, B, nx, nx)
+    Cw = inverse_cholesky(Rw).unsqueeze(0)  # (1, B, nx, nx)
     X = est.filter.particles
     return Regression(X[:-1], data.u[:-1], sm.next_mean, lambda sl: sm.transition_weights[sl], Cw)
 

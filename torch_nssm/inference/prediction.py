@@ -14,7 +14,7 @@ from torch import Tensor
 from ..core.model import StateSpaceModel
 from .filtering import FilterOutput, sample_initial_state
 
-__all__ = ["free_run", "k_step_ahead", "simulate", "divergence"]
+__all__ = ["free_run", "k_step_ahead", "simulate", "divergence", "first_divergent_step"]
 
 
 def _step(model: StateSpaceModel, x: Tensor, u: Tensor, chol_w: Tensor, generator) -> Tensor:
@@ -53,7 +53,11 @@ def free_run(model: StateSpaceModel, u: Tensor) -> tuple[Tensor, Tensor]:
 def divergence(model: StateSpaceModel, u: Tensor, limit: float, max_steps: int = 1000) -> int | None:
     """The first step at which the noise-free simulation from ``x0_mean`` leaves ``|x| <= limit``
     or stops being finite (``None`` if it stays inside for ``min(T, max_steps)`` steps)."""
-    states, _ = free_run(model, u[:max_steps])
+    return first_divergent_step(free_run(model, u[:max_steps])[0], limit)
+
+
+def first_divergent_step(states: Tensor, limit: float) -> int | None:
+    """The first step of simulated ``states`` ``(T, ...)`` outside ``|x| <= limit`` or not finite."""
     bad = ~torch.isfinite(states) | (states.abs() > limit)
     steps = torch.nonzero(bad.flatten(1).any(-1)).flatten()
     return int(steps[0]) if steps.numel() else None

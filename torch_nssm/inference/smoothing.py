@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._ops import small_matmul, squared_norm, time_blocks
+from .._ops import inverse_cholesky, small_matmul, squared_norm, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from .filtering import FilterOutput
 from .resampling import cumulative_weights, inverse_cdf
@@ -319,9 +319,7 @@ def smoothed_moments(particles: Tensor, log_weights: Tensor) -> tuple[Tensor, Te
 
 def _whitening(model: StateSpaceModel, B: int, like: Tensor) -> Tensor:
     """Transpose of the inverse Cholesky factor of ``Rw``, shape (B, nx, nx)."""
-    Cw = torch.linalg.cholesky(model.per_sequence("Rw", B))
-    eye = torch.eye(Cw.shape[-1], dtype=like.dtype, device=like.device)
-    return torch.linalg.solve_triangular(Cw, eye.expand_as(Cw), upper=False).transpose(-1, -2)
+    return inverse_cholesky(model.per_sequence("Rw", B).to(like.dtype)).transpose(-1, -2)
 
 
 def _whitened(x: Tensor, Cinv_t: Tensor) -> Tensor:
