@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -29,6 +31,15 @@ def _single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+@pytest.fixture
+def kernel_imports_this_checkout(monkeypatch):
+    """A notebook kernel or subprocess (which inherits the environment) imports this checkout's
+    ``torch_nssm`` and ``examples/``, not an installed copy."""
+    repo = Path(__file__).resolve().parents[1]
+    paths = [str(repo), str(repo / "examples"), os.environ.get("PYTHONPATH", "")]
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in paths if p))
 
 
 class LinearF(nn.Module):

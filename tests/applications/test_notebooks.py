@@ -9,6 +9,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
+pytestmark = pytest.mark.usefixtures("kernel_imports_this_checkout")
+
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 
 

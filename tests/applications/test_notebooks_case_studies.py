@@ -16,6 +16,8 @@ import pytest
 nbformat = pytest.importorskip("nbformat")
 nbclient = pytest.importorskip("nbclient")
 
+pytestmark = pytest.mark.usefixtures("kernel_imports_this_checkout")
+
 REPO = Path(__file__).resolve().parents[2]
 NOTEBOOKS = REPO / "notebooks"
 SILVERBOX_DIR = Path(os.environ.get("TORCH_NSSM_SILVERBOX", REPO / ".." / "shared" / "data" / "silverbox"))
