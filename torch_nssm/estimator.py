@@ -151,6 +151,15 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     smoother_options : dict, optional
         Keyword options of the chosen smoother (e.g. ``{"kernel_dtype": torch.float64}`` for
         ``"ffbsm"``, ``{"mcmc_steps": 2}`` or ``{"n_trajectories": 500}`` for ``"mcmc"``).
+    segment_length : int, optional
+        Time-parallel E-step for long records: each record longer than this is cut into windows
+        owning ``segment_length`` samples, with ``segment_overlap`` samples of burn-in before and
+        look-ahead after, all filtered and smoothed as one batch; each window starts from the
+        previous iteration's filter prediction at its first sample.  ``None`` (default): one exact
+        pass.  A few hundred to a few thousand samples; see docs/design.md ("Long records").
+    segment_overlap : int, default=100
+        Burn-in and look-ahead of each window: longer than the system's memory (its slowest time
+        constant, in samples) and than the smoother's useful look-ahead.
     random_state : int, RandomState or None
         Seed of the particle methods and of the restarts.  With an int, every call (``fit``,
         ``smooth``, ``predict(..., horizon=k)``, ``simulate``...) is reproducible; the methods
@@ -240,6 +249,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         ess_threshold: float = 1.0,
         chunk_size: int | None = None,
         smoother_options: dict | None = None,
+        segment_length: int | None = None,
+        segment_overlap: int = 100,
         random_state=None,
         n_threads: int | None = 1,
         device="cpu",
@@ -277,6 +288,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.ess_threshold = ess_threshold
         self.chunk_size = chunk_size
         self.smoother_options = smoother_options
+        self.segment_length = segment_length
+        self.segment_overlap = segment_overlap
         self.random_state = random_state
         self.n_threads = n_threads
         self.device = device
@@ -379,6 +392,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             raise ValueError(f"dof_bounds must satisfy 0 < low < high, got {self.dof_bounds!r}")
         if self.chunk_size is not None:
             V.check_positive(self.chunk_size, "chunk_size", integer=True, minimum=1, inclusive=True)
+        if self.segment_length is not None:
+            V.check_positive(self.segment_length, "segment_length", integer=True, minimum=1, inclusive=True)
+        V.check_positive(self.segment_overlap, "segment_overlap", integer=True, minimum=1, inclusive=True)
         if self.smoother_options is not None:
             if not isinstance(self.smoother_options, dict):
                 kind = type(self.smoother_options).__name__
@@ -449,6 +465,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 smoother_options=smoother_opts,
                 resampling=self.resampling,
                 ess_threshold=self.ess_threshold,
+                segment_length=self.segment_length,
+                segment_overlap=self.segment_overlap,
             ),
             mstep=MStepOptions(
                 optimizer=self.optimizer,
@@ -1053,6 +1071,11 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
         ``n_iter_`` and ``converged_`` (a data set leaves the batch once it has converged).
     """
     device = estimator._check_params()
+    if estimator.segment_length is not None:
+        raise ValueError(
+            "segment_length applies to fit (one model for all records); fit_independent runs each data "
+            "set whole: set segment_length=None"
+        )
     if not V.is_sequence_list(y):
         raise ValueError("y must be a list of data sets (one array per data set)")
     n_sets = len(y)

@@ -11,11 +11,22 @@ from torch import Tensor
 
 from .._ops import time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
-from ..inference.filtering import FilterOutput, particle_filter
+from ..core.noise import masked_scale
+from ..inference.filtering import FilterOutput, particle_filter, sample_initial_state
+from ..inference.resampling import get_resampler
 from ..inference.smoothers import get_smoother
 from ..inference.smoothing import SmootherOutput
+from ..inference.windows import Windows, cut
 
-__all__ = ["EStepOutput", "EStepOptions", "e_step", "latent_scales", "outlier_weights"]
+__all__ = [
+    "EStepOutput",
+    "EStepOptions",
+    "e_step",
+    "segmented_e_step",
+    "to_records",
+    "latent_scales",
+    "outlier_weights",
+]
 
 
 @dataclass
@@ -29,15 +40,23 @@ class EStepOutput:
     e_lam, e_log_lam : Tensor, shape (T, B, L) or (T, B, L, p)
         ``<lam>`` and ``<log lam>`` of each particle (per output component for noise families
         with one scale per component); not used where ``y_k`` is missing.
+    windows : Windows, optional
+        Set by the time-parallel E-step before :func:`to_records`: everything above is then per
+        window ``(T_w, W, ...)``, and ``windows.owned_data`` is what the M-step must see (the
+        outputs and transitions a window does not own are masked out; the log-likelihood of each
+        window is that of the steps it owns).
     """
 
     filter: FilterOutput
     smoother: SmootherOutput
     e_lam: Tensor
     e_log_lam: Tensor
+    windows: Windows | None = None
 
     def select(self, index) -> EStepOutput:
         """The E-step output of the sequences ``index``."""
+        if self.windows is not None:
+            raise ValueError("select the records after to_records()")
         return EStepOutput(
             self.filter.select(index),
             self.smoother.select(index),
@@ -53,13 +72,16 @@ class EStepOutput:
 
 @dataclass
 class EStepOptions:
-    """Settings of the E-step: particles, smoother (by registry name, with its options), resampling."""
+    """Settings of the E-step: particles, smoother (by registry name, with its options), resampling,
+    and the windows of the time-parallel E-step (``segment_length=None``: one exact pass)."""
 
     n_particles: int = 200
     smoother: str = "ffbsm"
     smoother_options: dict[str, Any] = field(default_factory=dict)
     resampling: str = "systematic"
     ess_threshold: float = 1.0
+    segment_length: int | None = None
+    segment_overlap: int = 100
 
 
 def latent_scales(model: StateSpaceModel, data: SequenceBatch, filt: FilterOutput) -> tuple[Tensor, Tensor]:
@@ -91,19 +113,136 @@ def e_step(
     data: SequenceBatch,
     options: EStepOptions,
     generator: torch.Generator | None = None,
+    previous: EStepOutput | None = None,
+    *,
+    records: bool = True,
 ) -> EStepOutput:
-    """Filter, smooth and compute the latent-scale expectations at the model's parameters."""
-    filt = particle_filter(
+    """Filter, smooth and compute the latent-scale expectations at the model's parameters.
+
+    With ``options.segment_length`` set, records longer than it are cut into overlapping windows
+    that run as one batch (:func:`segmented_e_step`); ``previous``, the last E-step on the same
+    data, then gives the windows their starting particles.  ``records=False`` keeps that output
+    per window (what the EM loop's M-step takes; :func:`to_records` converts it).
+    """
+    if options.segment_length is not None and int(data.lengths.max()) > options.segment_length:
+        est = segmented_e_step(model, data, options, generator, previous)
+        return to_records(est, model, data) if records else est
+    filt = _filter(model, data, options, generator)
+    smooth = _smooth(model, data, filt, options, generator)
+    e_lam, e_log = latent_scales(model, data, filt)
+    return EStepOutput(filt, smooth, e_lam, e_log)
+
+
+def segmented_e_step(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    options: EStepOptions,
+    generator: torch.Generator | None = None,
+    previous: EStepOutput | None = None,
+) -> EStepOutput:
+    """The time-parallel E-step: overlapping windows of every record filtered and smoothed as one
+    batch; each window's statistics count only the steps it owns.  Returns the per-window output
+    (``windows`` set; :func:`to_records` gives the records').
+
+    A window that starts at its record's first sample draws its first state from the model's
+    prior.  Every other window starts from the one-step prediction of the sequential filter at its
+    first step: the filter particles of the step before it, from ``previous`` (the last E-step on
+    these data), resampled by their weights and moved by the current ``f`` and ``Rw``.  Without
+    ``previous`` a filter-only pass over the windows (each from the prior, the burn-in absorbing
+    it) provides them.
+    """
+    if model.Rw.dim() != 2:
+        raise ValueError("segment_length needs one model for all records (not independent fits)")
+    windows = cut(data, options.segment_length, options.segment_overlap)
+    later = torch.nonzero(~windows.first).flatten()
+    t, b = windows.start[later] - 1, windows.record[later]  # the step before each later window
+    if previous is not None and _same_records(previous, windows, data):
+        X, logW = _filter_rows(previous.filter, previous.windows, t, b)
+    else:  # a filter-only pass from the prior; the step's owning window has passed its burn-in
+        X, logW = _filter_rows(_filter(model, windows.data, options, generator), windows, t, b)
+    x0 = sample_initial_state(model, windows.n_windows, options.n_particles, generator)
+    if later.numel():
+        x0[later] = _predicted(model, X, logW, data.u[t, b], options.n_particles, generator)
+    filt = _filter(model, windows.data, options, generator, initial_particles=x0)
+    smooth = _smooth(model, windows.data, filt, options, generator)
+    e_lam, e_log = latent_scales(model, windows.data, filt)
+    # what the M-step sees: the steps and transitions each window owns
+    owned = windows.owned()
+    filt.log_likelihood = torch.where(owned, filt.log_likelihood_steps, 0.0).sum(0)
+    noise_scale = model.noise.per_sequence("Rv", windows.n_windows).unsqueeze(0)
+    filt.scale = masked_scale(noise_scale, windows.owned_data.obs_mask)
+    smooth.residual_scatter = windows.owned_scatter(filt.particles, smooth)
+    smooth.transition_weights.mul_(windows.owned_data.transition_mask.unsqueeze(-1))
+    return EStepOutput(filt, smooth, e_lam, e_log, windows)
+
+
+def _same_records(previous: EStepOutput, windows: Windows, data: SequenceBatch) -> bool:
+    """Whether ``previous`` is an E-step output on ``data`` that :func:`_filter_rows` can read."""
+    if previous.windows is None:
+        return tuple(previous.filter.particles.shape[:2]) == (data.n_steps, data.n_sequences)
+    return previous.windows.window_of.shape == windows.window_of.shape
+
+
+def _filter_rows(filt: FilterOutput, windows: Windows | None, t: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """The filter particles and log-weights at record steps ``t`` of records ``b``."""
+    if windows is None:
+        return filt.particles[t, b], filt.log_weights[t, b]
+    w, k = windows.window_of[t, b], windows.local_of[t, b]
+    return filt.particles[k, w], filt.log_weights[k, w]
+
+
+def _filter(model, data, options: EStepOptions, generator, initial_particles=None) -> FilterOutput:
+    return particle_filter(
         model,
         data,
         options.n_particles,
         resampling=options.resampling,
         ess_threshold=options.ess_threshold,
         generator=generator,
+        initial_particles=initial_particles,
     )
-    smooth = _smooth(model, data, filt, options, generator)
-    e_lam, e_log = latent_scales(model, data, filt)
-    return EStepOutput(filt, smooth, e_lam, e_log)
+
+
+@torch.no_grad()
+def _predicted(model: StateSpaceModel, X: Tensor, logW: Tensor, u: Tensor, L: int, generator) -> Tensor:
+    """``L`` draws of the one-step prediction from filter particles ``X`` ``(J, L', nx)`` with
+    log-weights ``logW`` ``(J, L')`` and inputs ``u`` ``(J, nu)``: resample, ``f``, add ``w``."""
+    idx = get_resampler("systematic")(logW, L, generator=generator)
+    x = model.transition(torch.gather(X, 1, idx.unsqueeze(-1).expand(*idx.shape, X.shape[-1])), u)
+    chol = torch.linalg.cholesky(model.Rw).to(x.dtype)
+    noise = torch.randn(x.shape, dtype=x.dtype, device=x.device, generator=generator)
+    return x + noise @ chol.transpose(-1, -2)
+
+
+def to_records(est: EStepOutput, model: StateSpaceModel, data: SequenceBatch) -> EStepOutput:
+    """A per-window E-step output (:func:`segmented_e_step`) as the records' ``(T, B, ...)``: each
+    step from the window that owns it (the filter's ancestors across a window boundary index the
+    owning window's particles).  Other outputs are returned as they are."""
+    windows = est.windows
+    if windows is None:
+        return est
+    filt, smooth = est.filter, est.smoother
+    g = windows.gather
+    steps = torch.where(data.step_mask, g(filt.log_likelihood_steps), 0.0)
+    scale = masked_scale(model.noise.per_sequence("Rv", data.n_sequences).unsqueeze(0), data.obs_mask)
+    record_filter = FilterOutput(
+        g(filt.particles),
+        g(filt.log_weights),
+        windows.to_records(filt.log_likelihood),
+        g(filt.ess),
+        scale,
+        g(filt.ancestors),
+        None,
+        steps,
+    )
+    trans = data.transition_mask.unsqueeze(-1)
+    record_smoother = SmootherOutput(
+        g(smooth.log_weights),
+        g(smooth.next_mean, transitions=True),
+        torch.where(trans, g(smooth.transition_weights, transitions=True), 0.0),
+        windows.to_records(smooth.residual_scatter),
+    )
+    return EStepOutput(record_filter, record_smoother, g(est.e_lam), g(est.e_log_lam))
 
 
 def _smooth(model, data, filt, options: EStepOptions, generator) -> SmootherOutput:

@@ -20,7 +20,7 @@ import torch
 
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
-from .estep import EStepOptions, EStepOutput, e_step
+from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
 
@@ -207,7 +207,8 @@ def run_em(
     def estep(groups: list[int], iteration: int | None) -> _Batch:
         batch = _Batch(groups, models, data, shared)
         est_options = replace(options.estep, n_particles=options.n_particles(iteration))
-        est = e_step(batch.model, batch.data, est_options, generator)
+        previous = last[groups[0]][0] if shared and last[groups[0]] is not None else None
+        est = e_step(batch.model, batch.data, est_options, generator, previous, records=False)
         for j, g in enumerate(groups):
             last[g] = (est, j)
         return batch
@@ -241,7 +242,7 @@ def run_em(
             snapshots = {active[j]: _snapshot(models[active[j]]) for j in update}
             ids = [active[j] for j in update]
             if len(update) == len(active):  # the usual case: no copy of the E-step output
-                sub_data, sub_est = batch.data, est
+                sub_data, sub_est = batch.data if est.windows is None else est.windows.owned_data, est
             else:
                 sel = torch.tensor(update, device=data.y.device)
                 sub_data, sub_est = batch.data.select(sel), est.select(sel)
@@ -289,7 +290,7 @@ def run_em(
         est = None
         if last[g] is not None:
             batch_est, j = last[g]
-            est = batch_est if shared else batch_est.select(slice(j, j + 1))
+            est = to_records(batch_est, models[g], data) if shared else batch_est.select(slice(j, j + 1))
         history = dict(histories[g])
         for label in ("f", "g"):  # an interrupt or error can leave a flag without its iterate
             key = f"rejected.{label}"

@@ -214,7 +214,12 @@ def _closed_form(
         return [SolverReport(math.nan, math.nan) for _ in modules]
     thetas = torch.stack([m.theta().detach() for m in modules])  # (G, P)
     G, h = linear_normal_equations(
-        template, groups.per_sequence(thetas), problem.x, problem.u, problem.target, problem.weight,
+        template,
+        groups.per_sequence(thetas),
+        problem.x,
+        problem.u,
+        problem.target,
+        problem.weight,
         problem.whitener,
     )
     G, h = groups.pool(G), groups.pool(h)
@@ -327,10 +332,12 @@ def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -
     ``Rw`` is *added* to the smoothed covariance: with a single record the maximum-likelihood prior
     would otherwise collapse to a point over the iterations.
     """
-    X0 = est.filter.particles[0]  # (B, L, nx)
+    X0, log_w0 = est.filter.particles[0], est.smoother.log_weights[0]  # (B, L, nx), (B, L)
+    if est.windows is not None:  # windows of long records: those that start a record
+        X0, log_w0 = X0[est.windows.first], log_w0[est.windows.first]
     B = X0.shape[0]
     groups = _Groups(shared, B)
-    w0 = torch.exp(est.smoother.log_weights[0]).unsqueeze(-1)  # (B, L, 1)
+    w0 = torch.exp(log_w0).unsqueeze(-1)  # (B, L, 1)
     count = groups.pool(torch.ones(B, dtype=X0.dtype, device=X0.device))
     mean = groups.pool((w0 * X0).sum(1)) / count[..., None]
     d = X0 - groups.per_sequence(mean.reshape(groups.n, -1)).unsqueeze(1)

@@ -47,6 +47,9 @@ class FilterOutput:
     noise_statistics : Tensor, shape (T, B, L, ...), optional
         What the noise model recorded of every particle's whitened residual (e.g. its squared
         norm); the E-step's latent scales reuse it.
+    log_likelihood_steps : Tensor, shape (T, B), optional
+        The increments ``log p(y_k | y_{<k})`` that sum to ``log_likelihood`` (zero where nothing
+        is observed).
     """
 
     particles: Tensor
@@ -56,6 +59,7 @@ class FilterOutput:
     scale: MaskedScale
     ancestors: Tensor
     noise_statistics: Tensor | None = None
+    log_likelihood_steps: Tensor | None = None
 
     def select(self, index) -> FilterOutput:
         """The filter output of the sequences ``index``."""
@@ -67,6 +71,7 @@ class FilterOutput:
             self.scale.select(index),
             self.ancestors[:, index],
             None if self.noise_statistics is None else self.noise_statistics[:, index],
+            None if self.log_likelihood_steps is None else self.log_likelihood_steps[:, index],
         )
 
 
@@ -111,6 +116,7 @@ def particle_filter(
     resampling: str = "systematic",
     ess_threshold: float = 1.0,
     generator: torch.Generator | None = None,
+    initial_particles: Tensor | None = None,
 ) -> FilterOutput:
     """Run the bootstrap particle filter over a batch of sequences.
 
@@ -127,6 +133,9 @@ def particle_filter(
         every step, ``0.0`` never.
     generator : torch.Generator, optional
         Source of randomness (for reproducible runs).
+    initial_particles : Tensor, shape (B, L, nx), optional
+        Equally weighted draws of the first state of each sequence, in place of draws from the
+        model's prior ``N(x0_mean, x0_cov)`` (the time-parallel E-step's windows start so).
 
     Returns
     -------
@@ -143,7 +152,12 @@ def particle_filter(
     L = n_particles
     scale = masked_scale(model.noise.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density
-    x0 = sample_initial_state(model, B, L, generator)
+    if initial_particles is None:
+        x0 = sample_initial_state(model, B, L, generator)
+    else:
+        x0 = initial_particles
+        if x0.shape[:2] != (B, L):
+            raise ValueError(f"initial_particles must have shape ({B}, {L}, nx), got {tuple(x0.shape)}")
     nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
     # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
     particles = torch.empty(T, B, L, nx, dtype=dtype, device=device)
@@ -217,9 +231,11 @@ def particle_filter(
     ess = (s_all / norm_all).square_().squeeze(-1)
     # log p(y_k | y_<k) = const_k + log sum_l W_{k-1,l} exp(logit_kl) = const_k + m_k + log s_k
     # (- log L when the previous weights are uniform after resampling at every step)
-    log_lik = (density.const + (m_all + log_s).squeeze(-1)).sum(0)
+    steps = density.const + (m_all + log_s).squeeze(-1)  # (T, B)
     if always:
-        log_lik = log_lik - T * math.log(L)
+        steps = steps - math.log(L)
+    steps = torch.where(scale.n_obs > 0, steps, 0.0)  # unobserved steps add exactly nothing
+    log_lik = steps.sum(0)
     if not torch.isfinite(log_lik).all():
         bad = (~torch.isfinite(log_weights).any(-1)) | (~torch.isfinite(particles).all(-1).all(-1))
         steps = torch.nonzero(bad.any(-1)).flatten().tolist()
@@ -228,4 +244,4 @@ def particle_filter(
             "particle filter produced non-finite weights or states "
             f"({where}); check that f and g return finite values at the current parameters"
         )
-    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, density.statistics)
+    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, density.statistics, steps)

@@ -519,7 +519,7 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
         xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[sl])
         S_next = (x_next.transpose(-1, -2) @ x_next) / M  # (t, B, nx, nx)
         MmT = (s.unsqueeze(-1) * xbar).transpose(-1, -2) @ xbar
-        if all_valid:  # one sequence, or sequences of equal length: nothing to mask
+        if all_valid or bool(valid.all()):  # nothing to mask in this block
             scatter += (S_next - MmT).sum(0)
             torch.log(s, out=log_ws[sl])
             trans_w[sl] = s
