@@ -43,6 +43,13 @@ SETTINGS = {
     "robust simulation-error fit (first stage alone)": dict(first_stage="simulation", n_iter=0),
     "EM, Gaussian noise (after the first stage, Rw held)": dict(noise="gaussian", **HELD),
     "EM, Student-t noise (after the first stage, Rw held)": dict(noise="student-t", **HELD),
+    # without the first stage, from the equation-error start, Rw free: what EM alone does
+    "EM, Gaussian noise (equation-error start, Rw free)": dict(
+        noise="gaussian", first_stage=None, segment_length=1000, segment_overlap=100
+    ),
+    "EM, Student-t noise (equation-error start, Rw free)": dict(
+        noise="student-t", first_stage=None, segment_length=1000, segment_overlap=100
+    ),
 }
 
 
@@ -68,6 +75,7 @@ def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--n-train", type=int, default=None, help="training samples (default: all the multisine)")
     p.add_argument("--n-iter", type=int, default=15)
+    p.add_argument("--only", nargs="*", default=None, help="run the fits whose names contain these words")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     u_all, _ = load_silverbox(part="all")
@@ -83,6 +91,8 @@ def main(argv=None) -> list[dict]:
         data = prepare_silverbox(n_train=n_train, outlier_fraction=fraction, random_state=0)
         y_arrow_mv = data.to_mv(data.y_arrow[:, 0])
         for name, overrides in SETTINGS.items():
+            if a.only and not any(word in name for word in a.only):
+                continue
             est = estimator(data, a.n_iter, **overrides)
             t0 = time.perf_counter()
             with warnings.catch_warnings():
