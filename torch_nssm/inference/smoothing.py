@@ -531,4 +531,59 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     return SmootherOutput(log_ws, next_mean, trans_w, scatter)
 
 
+@torch.no_grad()
+def backward_trajectories(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    filt: FilterOutput,
+    n_trajectories: int,
+    *,
+    max_tries: int = 10,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Indices of ``M`` trajectories drawn from the particle approximation of the joint smoothing
+    distribution ``p(x_{0:T-1} | y)`` (backward simulation, Godsill, Doucet & West 2004).
+
+    Each backward index is drawn exactly from the backward kernel
+    ``W_k^i N(x_{k+1}^j; f(x_k^i, u_k), Rw)`` by rejection with an exact ``O(L)`` fallback (as
+    :func:`ffbsi` with ``method="reject"``), so the trajectories are independent draws: ``O(T (L +
+    M))`` expected time.  Where a sequence has ended (padding) the index restarts from the filter.
+
+    Parameters
+    ----------
+    model, data, filt
+        As for :func:`ffbsm`.
+    n_trajectories : int
+        Number ``M`` of trajectories.
+    max_tries : int
+        Rejection proposals per index before the exact fallback.
+    generator : torch.Generator, optional
+
+    Returns
+    -------
+    Tensor, shape (T, B, M), long
+        ``J[k, b, m]``: the particle of sequence ``b`` at time ``k`` on trajectory ``m``.
+    """
+    X, logW = filt.particles, filt.log_weights
+    T, B, L, nx = X.shape
+    M = int(n_trajectories)
+    Cinv_t = _whitening(model, B, X)
+    trans = data.transition_mask
+    Js = torch.empty(T, B, M, dtype=torch.long, device=X.device)
+    Js[T - 1] = _draw(logW[T - 1], M, generator)
+    for blk in reversed(list(time_blocks(T - 1, B * max(L, M)))):
+        zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
+        cdfs = cumulative_weights(logW[blk])  # (t, B, L)
+        for k in range(blk.stop - 1, blk.start - 1, -1):
+            i = k - blk.start
+            x_next = torch.gather(zx[i], 1, Js[k + 1].unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+            J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator)
+            valid = trans[k]
+            if not bool(valid.all()):
+                u = torch.rand(B, M, dtype=X.dtype, device=X.device, generator=generator)
+                J = torch.where(valid.unsqueeze(-1), J, inverse_cdf(cdfs[i], u))
+            Js[k] = J
+    return Js
+
+
 #: The smoothers of the E-step, by name.
