@@ -155,7 +155,13 @@ class ParameterUncertainty:
         Their asymptotic covariance (delta method from the working scale); NaN rows and columns
         for directions the information does not determine.
     information : ndarray of shape (d, d)
-        The observed information on the working scale (see the module docstring).
+        The observed information on the working scale (see the module docstring):
+        ``complete_information - score_variance``.
+    complete_information : ndarray of shape (d, d)
+        ``E[-d2 log p(x, y) | y]`` on the working scale.
+    score_variance : ndarray of shape (d, d)
+        ``Var[d log p(x, y) | y]`` on the working scale (lag-windowed, see
+        :func:`_windowed_covariance`).
     missing_information : ndarray of shape (d,)
         Per working parameter, ``Var[score] / E[-Hessian]`` (diagonals): the fraction of the
         complete-data information lost because the states are not observed.
@@ -174,6 +180,8 @@ class ParameterUncertainty:
     estimate: np.ndarray
     covariance: np.ndarray
     information: np.ndarray
+    complete_information: np.ndarray
+    score_variance: np.ndarray
     missing_information: np.ndarray
     mean_score: np.ndarray
     n_trajectories: int
@@ -463,7 +471,7 @@ def observed_information(
     with np.errstate(divide="ignore", invalid="ignore"):
         missing = np.diagonal(V) / np.diagonal(-H)
     return ParameterUncertainty(
-        names, working, estimate, cov, info, missing, mean_score, M, lag, excluded, J, layout
+        names, working, estimate, cov, info, -H, V, missing, mean_score, M, lag, excluded, J, layout
     )
 
 
