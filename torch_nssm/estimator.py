@@ -32,7 +32,6 @@ from .estimation.first_stage import simulation_error_fit
 from .estimation.loop import EMOptions, EMResult, run_em
 from .estimation.mstep import MStepOptions
 from .estimation.solvers import SOLVERS, SolverSettings
-from .estimation.uncertainty import MAX_INFORMATION_PARAMETERS
 from .inference import prediction
 from .inference.filtering import NumericalError, particle_filter
 from .inference.resampling import RESAMPLING_SCHEMES
@@ -724,14 +723,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                     fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
-            if self._uncertainty.excluded:
-                warnings.warn(
-                    f"no standard errors for {', '.join(self._uncertainty.excluded)}: more than "
-                    f"{MAX_INFORMATION_PARAMETERS} free parameters (a neural network); the other standard "
-                    "errors treat it as known (docs/uncertainty.md)",
-                    UserWarning,
-                    stacklevel=3,
-                )
+            for message in self._uncertainty.warnings():
+                warnings.warn(message, RuntimeWarning, stacklevel=3)
         return self._uncertainty
 
     @property

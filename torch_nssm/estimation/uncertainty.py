@@ -201,6 +201,25 @@ class ParameterUncertainty:
         se = np.where(np.isfinite(np.diagonal(self.covariance)), se, np.nan)
         return self._unflatten(se)
 
+    def warnings(self) -> list[str]:
+        """What a user should be told: modules left out, parameters without a standard error."""
+        out = []
+        if self.excluded:
+            out.append(
+                f"no standard errors for {', '.join(self.excluded)}: more than {MAX_INFORMATION_PARAMETERS} "
+                "free parameters (a neural network); the other standard errors treat it as known "
+                "(docs/uncertainty.md)"
+            )
+        undetermined = [n for n, v in zip(self.names, np.diagonal(self.covariance)) if not np.isfinite(v)]
+        if undetermined:
+            out.append(
+                "the observed information is not positive definite along some directions (Monte Carlo "
+                "error, a fit far from the maximum, or parameters the data do not determine): no standard "
+                f"error for {', '.join(undetermined)}; more particles for the final E-step "
+                "(n_particles_final) or a converged fit help (docs/uncertainty.md)"
+            )
+        return out
+
     def correlation(self) -> np.ndarray:
         """The correlation matrix of the free parameters (``names`` order)."""
         s = np.sqrt(np.diagonal(self.covariance))
@@ -478,6 +497,11 @@ def observed_information(
 #: Eigenvalues of the information below this fraction of the largest count as zero.
 _RANK_TOLERANCE = 1e-10
 
+#: A working parameter with more than this share of its direction (squared eigenvector entries) in
+#: the undetermined eigendirections gets no standard error (NaN); the others come from the inverse
+#: on the determined subspace.
+_LOADING_TOLERANCE = 1e-2
+
 
 def _inverse(info: np.ndarray) -> np.ndarray:
     """The inverse of the information; NaN rows and columns for the parameters that load on its
@@ -488,7 +512,7 @@ def _inverse(info: np.ndarray) -> np.ndarray:
     good = vals > _RANK_TOLERANCE * max(vals.max(), 0.0)
     cov = (vecs[:, good] / vals[good]) @ vecs[:, good].T
     if not good.all():
-        loads = (vecs[:, ~good] ** 2).sum(1) > 1e-6
+        loads = (vecs[:, ~good] ** 2).sum(1) > _LOADING_TOLERANCE
         cov[loads, :] = np.nan
         cov[:, loads] = np.nan
     return cov
