@@ -344,7 +344,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 state[name] = copy.deepcopy(module).to("cpu")
         if state.get("_uncertainty_source") is not None:  # keep the standard errors, not the E-step
             try:
-                state["_uncertainty"] = self._parameter_uncertainty()
+                state["_uncertainty"] = self._parameter_uncertainty(warn=False)
             except (RuntimeError, ValueError, NotImplementedError):
                 pass
             state["_uncertainty_source"] = None
@@ -704,12 +704,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self._uncertainty_source = (model, est, data)
 
     # ------------------------------------------------------------------ standard errors
-    def _parameter_uncertainty(self):
-        """The observed information at the fitted parameters (computed once, on first use)."""
+    def _parameter_uncertainty(self, warn: bool = True):
+        """The observed information at the fitted parameters (computed once, on first use); with
+        ``warn``, its warnings (a module left out, parameters without a standard error)."""
         from .estimation.uncertainty import observed_information
 
         self._check_fitted()
-        if self._uncertainty is None:
+        if self.__dict__.get("_uncertainty") is None:  # also a fit pickled before standard errors existed
             source = self.__dict__.get("_uncertainty_source")
             if source is None:
                 raise AttributeError(
@@ -723,8 +724,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                     fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
-            for message in self._uncertainty.warnings():
-                warnings.warn(message, RuntimeWarning, stacklevel=3)
+        for message in self._uncertainty.warnings() if warn else ():
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
         return self._uncertainty
 
     @property
