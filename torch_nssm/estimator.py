@@ -355,6 +355,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 t.device.type != "cpu" for t in list(module.parameters()) + list(module.buffers())
             ):
                 state[name] = copy.deepcopy(module).to("cpu")
+        if state.get("_uncertainty_source") is not None:  # keep the standard errors, not the E-step
+            try:
+                state["_uncertainty"] = self._parameter_uncertainty(warn=False)
+            except (RuntimeError, ValueError, NotImplementedError):
+                pass
+            state["_uncertainty_source"] = None
         return state
 
     # ------------------------------------------------------------------ checks and set-up
@@ -711,6 +717,71 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.n_outputs_ = data.y.shape[-1]
         self.n_features_in_ = self.n_inputs_
         self._y_1d = bool(y_1d) and self.n_outputs_ == 1
+        # the standard errors are computed from this final E-step on first use (or when pickled)
+        self._uncertainty = None
+        self._uncertainty_source = (model, est, data)
+
+    # ------------------------------------------------------------------ standard errors
+    def _parameter_uncertainty(self, warn: bool = True):
+        """The observed information at the fitted parameters (computed once, on first use); with
+        ``warn``, its warnings (a module left out, parameters without a standard error)."""
+        from .estimation.uncertainty import observed_information
+
+        self._check_fitted()
+        if self.__dict__.get("_uncertainty") is None:  # also a fit pickled before standard errors existed
+            source = self.__dict__.get("_uncertainty_source")
+            if source is None:
+                raise AttributeError(
+                    "the standard errors were not computed before this estimator was copied or pickled "
+                    "without its final E-step: refit it"
+                )
+            model, est, data = source
+            with limited_threads(self.n_threads):
+                self._uncertainty = observed_information(
+                    model, data, est, fit_Rw=bool(self.fit_Rw), fit_Rv=bool(self.fit_Rv),
+                    fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
+                )
+            self._uncertainty_source = None
+        for message in self._uncertainty.warnings() if warn else ():
+            warnings.warn(message, RuntimeWarning, stacklevel=3)
+        return self._uncertainty
+
+    @property
+    def standard_errors_(self) -> dict:
+        """Standard errors keyed like ``history_`` (``"f.a"``, ``"g.C"``, ``"Rw"``, ``"Rv"``,
+        ``"dof"``), each shaped like its parameter: the observed information by Louis' identity from
+        the final E-step's particle smoother (docs/uncertainty.md).  Parameters held fixed have none."""
+        return self._parameter_uncertainty().standard_errors
+
+    @property
+    def parameter_covariance_(self) -> np.ndarray:
+        """Asymptotic covariance of the free parameters' entries, in ``parameter_names_`` order."""
+        return self._parameter_uncertainty().covariance
+
+    @property
+    def parameter_names_(self) -> list:
+        """Names of the entries of :attr:`parameter_covariance_` (``"f.A[0, 1]"``, ``"Rw[1, 0]"``, ...;
+        the lower triangle of a covariance matrix)."""
+        return list(self._parameter_uncertainty().names)
+
+    def confidence_intervals(self, level: float = 0.95) -> dict:
+        """Confidence intervals ``(lower, upper)`` keyed like :attr:`standard_errors_`.
+
+        Normal intervals from the observed information; for variances and degrees of freedom they are
+        formed on the log scale (so they stay positive).  :meth:`bootstrap` gives intervals that do
+        not rely on the asymptotics.
+        """
+        return self._parameter_uncertainty().confidence_intervals(level)
+
+    def bootstrap(self, u, *, n_boot: int = 100, level: float = 0.95, random_state=None, **fit_options):
+        """Parametric-bootstrap percentile intervals: ``n_boot`` records simulated from the fitted
+        model with the inputs ``u`` are refitted from the fitted estimate in one
+        :func:`fit_independent` call (:func:`torch_nssm.bootstrap.parametric_bootstrap`)."""
+        from .bootstrap import parametric_bootstrap
+
+        return parametric_bootstrap(
+            self, u, n_boot=n_boot, level=level, random_state=random_state, **fit_options
+        )
 
     # ------------------------------------------------------------------ using a fitted model
     def _check_fitted(self) -> torch.device:

@@ -13,7 +13,7 @@ from sklearn.exceptions import NotFittedError
 
 from .inference.results import StateEstimate
 
-__all__ = ["plot_history", "plot_outliers", "plot_residuals", "plot_states"]
+__all__ = ["plot_history", "plot_outliers", "plot_parameters", "plot_residuals", "plot_states"]
 
 #: Entries of ``history_`` that are covariance matrices: only their upper triangle is drawn.
 _SYMMETRIC = ("Rw", "Rv", "x0_cov")
@@ -165,6 +165,80 @@ def plot_history(est, params=None, true_values=None, ax=None):
     if single:
         ax.legend(fontsize="small")
         return ax
+    return np.asarray(axes, dtype=object)
+
+
+def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_values=None, ax=None):
+    """Fitted parameters with their confidence intervals as error bars, one panel per parameter.
+
+    Parameters
+    ----------
+    est : RobustNSSMEstimator
+        A fitted estimator.
+    params : str or list of str, optional
+        Keys of ``standard_errors_`` (``"f.a"``, ``"Rw"``, ...); default: all of them.  Vector and
+        matrix entries are drawn side by side (the lower triangle of ``Rw`` and ``Rv``).
+    level : float, default=0.95
+        Level of the observed-information intervals (``est.confidence_intervals(level)``).
+    intervals : dict, optional
+        Intervals to draw instead, keyed like ``standard_errors_`` (e.g. ``est.bootstrap(u).intervals``).
+    true_values : dict, optional
+        Drawn as crosses; keys as in :func:`plot_history` (``data.params`` works as it is).
+    ax : sequence of Axes, optional
+        One per parameter; a new figure if omitted.
+
+    Returns
+    -------
+    ndarray of Axes
+    """
+    from .bootstrap import parameter_values
+
+    if not hasattr(est, "f_"):
+        raise NotFittedError(f"{type(est).__name__} is not fitted: call fit(u, y) first")
+    values = parameter_values(est)
+    intervals = est.confidence_intervals(level) if intervals is None else intervals
+    if params is None:
+        params = [k for k in values if k in intervals]
+    elif isinstance(params, str):
+        params = [params]
+    params = list(params)
+    unknown = [p for p in params if p not in values or p not in intervals]
+    if unknown:
+        available = sorted(set(values) & set(intervals))
+        raise ValueError(f"params {unknown} have no interval; available: {available}")
+    if not params:
+        raise ValueError("params is empty: nothing to plot")
+    truth = _match_true_values(true_values, params, est.history_)
+    if ax is None:
+        plt = _pyplot()
+        ncols = min(3, len(params))
+        nrows = -(-len(params) // ncols)
+        fig, grid = plt.subplots(nrows, ncols, figsize=(3.5 * ncols, 2.8 * nrows), squeeze=False)
+        axes = grid.ravel()
+        for extra in axes[len(params) :]:
+            fig.delaxes(extra)
+        axes = axes[: len(params)]
+    else:
+        axes = np.asarray(ax, dtype=object).ravel()
+        if len(axes) != len(params):
+            raise ValueError(f"ax holds {len(axes)} Axes for {len(params)} params")
+    for name, a in zip(params, axes):
+        value = np.asarray(values[name], dtype=float)
+        lo, hi = (np.broadcast_to(np.asarray(b, dtype=float), value.shape) for b in intervals[name])
+        symmetric = name in _SYMMETRIC
+        entries = [i for i in np.ndindex(*value.shape) if not (symmetric and len(i) == 2 and i[0] < i[1])]
+        x = np.arange(len(entries))
+        v = np.array([value[i] for i in entries])
+        err = np.array([[value[i] - lo[i] for i in entries], [hi[i] - value[i] for i in entries]])
+        a.errorbar(x, v, yerr=np.clip(err, 0.0, None), fmt="o", capsize=4, label="estimate")
+        if name in truth:
+            t = truth[name]
+            t = t.reshape(value.shape) if t.size == value.size else np.broadcast_to(t, value.shape)
+            a.plot(x, [t[i] for i in entries], "x", color="black", label="true")
+        a.set_xticks(x)
+        labels = [name if not i else f"[{', '.join(map(str, i))}]" for i in entries]
+        a.set_xticklabels(labels, fontsize="small")
+        a.set_title(name)
     return np.asarray(axes, dtype=object)
 
 

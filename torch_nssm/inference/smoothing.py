@@ -531,4 +531,71 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     return SmootherOutput(log_ws, next_mean, trans_w, scatter)
 
 
+@torch.no_grad()
+def backward_trajectories(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    filt: FilterOutput,
+    n_trajectories: int,
+    *,
+    max_tries: int = 8,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """Indices of ``M`` trajectories drawn from the particle approximation of the joint smoothing
+    distribution ``p(x_{0:T-1} | y)`` (backward simulation, Godsill, Doucet & West 2004).
+
+    Each backward index is drawn exactly from the backward kernel
+    ``W_k^i N(x_{k+1}^j; f(x_k^i, u_k), Rw)`` by rejection: ``max_tries`` proposals from the filter
+    weights, all drawn and tested at once (a handful of operations per step), the first accepted
+    one kept; an index with none accepted is drawn exactly (``O(L)``).  The trajectories are
+    independent draws, in ``O(T (L + M max_tries))`` time.  Where a sequence has ended (padding) the
+    index restarts from the filter.
+
+    Parameters
+    ----------
+    model, data, filt
+        As for :func:`ffbsm`.
+    n_trajectories : int
+        Number ``M`` of trajectories.
+    max_tries : int
+        Rejection proposals per index before the exact draw.
+    generator : torch.Generator, optional
+
+    Returns
+    -------
+    Tensor, shape (T, B, M), long
+        ``J[k, b, m]``: the particle of sequence ``b`` at time ``k`` on trajectory ``m``.
+    """
+    X, logW = filt.particles, filt.log_weights
+    T, B, L, nx = X.shape
+    M, S = int(n_trajectories), max(1, int(max_tries))
+    Cinv_t = _whitening(model, B, X)
+    trans = data.transition_mask
+    all_valid = trans.all(-1).tolist()
+    Js = torch.empty(T, B, M, dtype=torch.long, device=X.device)
+    Js[T - 1] = _draw(logW[T - 1], M, generator)
+    tries = torch.arange(S, device=X.device).view(1, S, 1)
+    for blk in reversed(list(time_blocks(T - 1, B * max(L, M * S)))):
+        t = blk.stop - blk.start
+        zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
+        props = _draw(logW[blk], S * M, generator)  # (t, B, S * M): proposals from the filter weights
+        log_u = torch.log(torch.rand(t, B, S, M, dtype=X.dtype, device=X.device, generator=generator))
+        for k in range(blk.stop - 1, blk.start - 1, -1):
+            i = k - blk.start
+            J_next = Js[k + 1]
+            x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+            cand = torch.gather(zf[i], 1, props[i].unsqueeze(-1).expand(B, S * M, nx)).view(B, S, M, nx)
+            accept = 2.0 * log_u[i] < -squared_norm(x_next.unsqueeze(1) - cand)  # (B, S, M)
+            first = torch.where(accept, tries, S).amin(1, keepdim=True).clamp_(max=S - 1)  # first accepted
+            J = torch.gather(props[i].view(B, S, M), 1, first).squeeze(1)
+            pending = ~accept.any(1)
+            if bool(pending.any()):  # exact draws from the backward kernel
+                b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
+                d = x_next[b_idx, m_idx].unsqueeze(1) - zf[i][b_idx]  # (P, L, nx)
+                J[b_idx, m_idx] = _draw(logW[k][b_idx] - 0.5 * squared_norm(d), 1, generator)[:, 0]
+            if not all_valid[k]:  # past a sequence's end: restart from the filter
+                J = torch.where(trans[k].unsqueeze(-1), J, props[i][:, :M])
+            Js[k] = J
+    return Js
+
 #: The smoothers of the E-step, by name.

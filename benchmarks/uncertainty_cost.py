@@ -1,0 +1,104 @@
+"""Cost of the standard errors against one E-step, for several particle counts.
+
+For the paper's Section 4.1 model (``N = 500``, 3 + 3 parameters) and a 2-state linear-Gaussian
+model (``N = 300``, 12 parameters), at fitted parameters: the median over ``repeats`` of the time
+of :func:`~torch_nssm.estimation.uncertainty.observed_information` (500 trajectories) and of one
+E-step (filter + FFBSm) at the same particle count, measured alternately on one thread (the
+ratio is what to read on a busy machine).  The first call of ``torch.func`` in a process costs
+about 1.5 s of imports more, not counted.
+
+    python benchmarks/uncertainty_cost.py
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from torch_nssm import RobustNSSMEstimator
+from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+from torch_nssm.datasets import make_paper_example
+from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+from torch_nssm.estimation.estep import e_step
+from torch_nssm.estimation.uncertainty import observed_information
+
+
+def _paper(L: int) -> RobustNSSMEstimator:
+    d = make_paper_example(n_samples=500, random_state=0)
+    est = RobustNSSMEstimator(
+        PaperTransition(0.9, 1.0),
+        PaperObservation(1.0),
+        x0_mean=[0.0],
+        Rw_init=0.1,
+        Rv_init=0.1,
+        n_particles=L,
+        n_iter=3,
+        tol=0,
+        random_state=0,
+    )
+    return est.fit(d.u, d.y)
+
+
+def _linear(L: int) -> RobustNSSMEstimator:
+    rng = np.random.default_rng(0)
+    A, B = np.array([[0.8, 0.2], [-0.3, 0.6]]), np.array([[1.0], [0.5]])
+    x = np.zeros((300, 2))
+    u = rng.standard_normal((300, 1))
+    for k in range(299):
+        x[k + 1] = A @ x[k] + B @ u[k] + 0.3 * rng.standard_normal(2)
+    y = x + 0.25 * rng.standard_normal((300, 2))
+    g = LinearObservation(2, 1, 2, fit_offset=False)
+    g.C.requires_grad_(False)
+    est = RobustNSSMEstimator(
+        LinearTransition(2, 1, A=A, B=B),
+        g,
+        x0_mean=np.zeros(2),
+        noise="gaussian",
+        n_particles=L,
+        n_iter=3,
+        tol=0,
+        random_state=0,
+    )
+    return est.fit(u, y)
+
+
+def measure(build, L: int, repeats: int = 5) -> tuple[float, float]:
+    """Median seconds of the information and of one E-step."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = build(L)
+    model, estep, data = est._uncertainty_source
+    options = est._em_options().estep
+    observed_information(model, data, estep)  # imports, caches
+    info, step = [], []
+    for r in range(repeats):
+        t = time.perf_counter()
+        observed_information(model, data, estep, generator=torch.Generator().manual_seed(r))
+        info.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        e_step(model, data, options, torch.Generator().manual_seed(r))
+        step.append(time.perf_counter() - t)
+    return float(np.median(info)), float(np.median(step))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--particles", type=int, nargs="+", default=[200, 500, 1000])
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    print(f"{'model':16s} {'L':>5s} {'information':>12s} {'E-step':>8s} {'ratio':>6s}")
+    for name, build in (("paper 4.1", _paper), ("linear 2-state", _linear)):
+        for L in args.particles:
+            info, step = measure(build, L, args.repeats)
+            print(f"{name:16s} {L:5d} {info:10.3f} s {step:6.3f} s {info / step:6.2f}")
+
+
+if __name__ == "__main__":
+    main()
