@@ -355,12 +355,6 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 t.device.type != "cpu" for t in list(module.parameters()) + list(module.buffers())
             ):
                 state[name] = copy.deepcopy(module).to("cpu")
-        if state.get("_uncertainty_source") is not None:  # keep the standard errors, not the E-step
-            try:
-                state["_uncertainty"] = self._parameter_uncertainty(warn=False)
-            except (RuntimeError, ValueError, NotImplementedError):
-                pass
-            state["_uncertainty_source"] = None
         return state
 
     # ------------------------------------------------------------------ checks and set-up
@@ -717,9 +711,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.n_outputs_ = data.y.shape[-1]
         self.n_features_in_ = self.n_inputs_
         self._y_1d = bool(y_1d) and self.n_outputs_ == 1
-        # the standard errors are computed from this final E-step on first use (or when pickled)
+        # the standard errors are computed on first use, from an E-step at the fitted parameters on
+        # these data (keeping the fit's own E-step would hold ~10 (N, L) tensors for the
+        # estimator's lifetime, and in every pickled or cloned copy)
         self._uncertainty = None
-        self._uncertainty_source = (model, est, data)
+        self._uncertainty_source = (model, data)
 
     # ------------------------------------------------------------------ standard errors
     def _parameter_uncertainty(self, warn: bool = True):
@@ -732,11 +728,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             source = self.__dict__.get("_uncertainty_source")
             if source is None:
                 raise AttributeError(
-                    "the standard errors were not computed before this estimator was copied or pickled "
-                    "without its final E-step: refit it"
+                    "this estimator was pickled by a version without standard errors: refit it"
                 )
-            model, est, data = source
+            model, data = source
             with limited_threads(self.n_threads):
+                est = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
                     model, data, est, fit_Rw=bool(self.fit_Rw), fit_Rv=bool(self.fit_Rv),
                     fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),

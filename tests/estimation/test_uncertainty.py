@@ -107,7 +107,8 @@ def exact(linear_gaussian_fit):
         A_, B_ = a[:4].reshape(2, 2), a[4:].reshape(2, 1)
         return kalman_filter(A_, B_, C, D, Rw, Rv, est.x0_mean_, est.x0_cov_, u, y).log_likelihood
 
-    model, e, data = est._uncertainty_source
+    model, data = est._uncertainty_source
+    e = est._e_step(model, data, est._generator(data.y.device))
     with limited_threads(1):
         unc = U.observed_information(model, data, e, generator=torch.Generator().manual_seed(0))
     return w0, np.linalg.inv(-_numerical_hessian(loglik, w0)), unc
@@ -145,7 +146,8 @@ def test_without_the_lag_window_the_score_variance_is_biased(linear_gaussian_fit
     bias of order ``1/L``: its standard errors are further from the exact ones than the windowed."""
     est, _, _ = linear_gaussian_fit
     _, cov_exact, unc = exact
-    model, e, data = est._uncertainty_source
+    model, data = est._uncertainty_source
+    e = est._e_step(model, data, est._generator(data.y.device))
     with limited_threads(1):
         blocks, _ = U._blocks(model, True, True, True)
         ll = U._LogLikelihood(model, blocks)
@@ -170,7 +172,8 @@ def test_expected_hessian_is_the_mstep_objective(linear_gaussian_fit):
     """The Hessian of the expected complete-data log-likelihood in the entries of ``B`` is
     ``-sum_k s_k^i u_k u_k^T (x) Rw^-1`` over the M-step's transition rows: exact for f linear."""
     est, _, _ = linear_gaussian_fit
-    model, e, data = est._uncertainty_source
+    model, data = est._uncertainty_source
+    e = est._e_step(model, data, est._generator(data.y.device))
     with limited_threads(1):
         unc = U.observed_information(
             model, data, e, n_trajectories=50, generator=torch.Generator().manual_seed(0)
