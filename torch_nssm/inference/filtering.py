@@ -85,6 +85,7 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
     if isinstance(generator, SequenceStreams):
         limits = [int(n) - 1 for n in lengths]
         noise = generator.steps(0, T1, limits, tuple(out.shape[2:]), noise_dtype, normal=True, fill=0.0)
+        noise = noise.transpose(0, 1)
     else:
         noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
     if nx == 1:
@@ -170,7 +171,8 @@ def particle_filter(
     # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
     if fast_systematic:
         if streams is not None:  # step k (1 <= k < T_b) of sequence b: its draw k - 1
-            uniforms = streams.steps(0, max(T - 1, 0), [n - 1 for n in lengths], (1,), dtype).unbind(0)
+            uniforms = streams.steps(0, max(T - 1, 0), [n - 1 for n in lengths], (1,), dtype)
+            uniforms = uniforms.transpose(0, 1).contiguous().unbind(0)
         else:
             shape = (max(T - 1, 0), B, 1)
             uniforms = torch.rand(shape, dtype=dtype, device=device, generator=generator).unbind(0)

@@ -116,25 +116,26 @@ class SequenceStreams:
         reverse: bool = False,
         fill: float = _PAD_UNIFORM,
     ) -> Tensor:
-        """Draws of the time steps ``start <= k < stop``: ``(stop - start, B, *shape)``.
+        """Draws of the time steps ``start <= k < stop``: ``(B, stop - start, *shape)``.
 
         Sequence ``b`` draws ``shape`` numbers for each of its steps ``k < limits[b]`` (the others
-        are ``fill``), in increasing ``k`` or, with ``reverse``, decreasing ``k`` (backward passes:
-        consecutive blocks then continue one another).  ``normal`` draws are made for all of a
-        sequence's steps in one call (``randn`` is not sequential): call it once per pass.
+        are ``fill``), in increasing ``k`` (row ``j``: step ``start + j``) or, with ``reverse``, in
+        decreasing ``k`` (row ``j``: step ``stop - 1 - j``; backward passes: consecutive blocks then
+        continue one another).  Each sequence's rows are drawn straight into the result, in one
+        call.  ``normal`` draws are made for all of a sequence's steps at once (``randn`` is not
+        sequential): call it once per pass.
         """
         t = stop - start
-        out = torch.full((len(self), t, *shape), fill, dtype=dtype, device=self.device)
+        out = torch.empty((len(self), t, *shape), dtype=dtype, device=self.device)
         fn = torch.randn if normal else torch.rand
         for b in range(len(self)):
-            n = min(stop, int(limits[b])) - start
-            if n <= 0:
-                continue
-            if reverse:
-                out[b, :n] = self._draw(fn, b, (n, *shape), dtype).flip(0)
-            else:
-                self._draw(fn, b, (n, *shape), dtype, out[b, :n])
-        return out.transpose(0, 1)
+            n = max(0, min(t, int(limits[b]) - start))
+            rows, pad = (slice(t - n, t), slice(0, t - n)) if reverse else (slice(0, n), slice(n, t))
+            if n:
+                self._draw(fn, b, (n, *shape), dtype, out[b, rows])
+            if n < t:
+                out[b, pad] = fill
+        return out
 
     def rows(self, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
         """Uniforms ``(B, *shape)`` for the live rows (``fill`` elsewhere)."""

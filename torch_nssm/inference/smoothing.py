@@ -449,18 +449,20 @@ def ffbsi(
     for blk in reversed(list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))):
         t = blk.stop - blk.start
         zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
-        if streams is not None:
+        if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
             n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
             draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), dtype, reverse=True)
         if method == "mcmc":
             if streams is None:
                 props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
                 u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
-            else:
-                cdf = cumulative_weights(logW[blk]).reshape(-1, L)
-                props = inverse_cdf(cdf, draws[..., :n_mcmc].reshape(t * B, n_mcmc)).view(t, B, mcmc_steps, M)
-                u = draws[..., n_mcmc:].reshape(t, B, mcmc_steps, M)
-            log_us = torch.log(u)
+            else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
+                d = draws.view(B, t, 2, n_mcmc)
+                cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
+                u = d[:, :, 0].reshape(B * t, n_mcmc).contiguous()  # strided: inverse_cdf 3x slower
+                props = inverse_cdf(cdf, u).view(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
+                u = d[:, :, 1].reshape(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
+            log_us = torch.log(u)  # time-major (each step's rows contiguous), reversed with streams
         else:
             cdfs = cumulative_weights(logW[blk])  # (t, B, L)
         for k in range(blk.stop - 1, blk.start - 1, -1):
@@ -472,10 +474,14 @@ def ffbsi(
                 x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
             if method == "mcmc":
                 parent = torch.gather(filt.ancestors[k + 1], 1, J_next)
-                J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
-                restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
+                if streams is None:
+                    J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
+                    restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
+                else:
+                    j = blk.stop - 1 - k
+                    J = _independent_mh(parent, zf[i], x_next, props[j], log_us[j])
             else:
-                pre = None if streams is None else draws[i]
+                pre = None if streams is None else draws[:, blk.stop - 1 - k]
                 J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
                 restart = None
             if streams is not None:
