@@ -35,7 +35,7 @@ from .estimation.mstep import MStepOptions
 from .estimation.solvers import SOLVERS, SolverSettings
 from .inference import prediction
 from .inference.filtering import NumericalError, particle_filter
-from .inference.random import SequenceStreams
+from .inference.random import SequenceStreams, sequence_seed
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.results import StateEstimate
 from .inference.smoothers import SMOOTHERS, smoother_options
@@ -1191,7 +1191,7 @@ def _fit_chunk(
         n = len(indices)
         options = estimator._em_options(f"robust EM x{n}")
         options.progress = f"robust EM x{n}" if progress else None
-        streams = SequenceStreams([_data_set_seed(entropy, b) for b in indices], device)
+        streams = SequenceStreams([sequence_seed(entropy, b) for b in indices], device)
         options.mstep.solver.generator = streams  # each data set's minibatch orders from its stream
         results = run_em(models, all_data, options, streams, shared=False)
     outcomes = []
@@ -1226,12 +1226,6 @@ def _entropy(random_state) -> int:
     if isinstance(random_state, (int, np.integer)):
         return int(random_state)
     return int(check_random_state(random_state).randint(0, 2**31 - 1))
-
-
-def _data_set_seed(entropy: int, index: int) -> int:
-    """The seed of data set ``index``'s random stream: a function of ``(entropy, index)`` only."""
-    state = np.random.SeedSequence(entropy, spawn_key=(index,)).generate_state(1, dtype=np.uint64)[0]
-    return int(state >> np.uint64(1))
 
 
 def _restart_seeds(random_state, n_runs: int) -> list[int]:

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["SequenceStreams", "Randomness", "sequence_seeds", "uniform", "multinomial"]
+__all__ = ["SequenceStreams", "Randomness", "sequence_seed", "sequence_seeds", "uniform", "multinomial"]
 
 #: Value of the uniforms of padded time steps (never used: those steps are masked).
 _PAD_UNIFORM = 0.5
@@ -89,7 +89,6 @@ class SequenceStreams:
     def at_step(self, live: Sequence[bool]) -> SequenceStreams:
         """These streams drawing only for the rows marked ``live`` (the others get constants)."""
         new = self.select(range(len(self)))
-        new._owner, new._index = self._owner, self._index
         new.live = list(live)
         return new
 
@@ -149,11 +148,16 @@ class SequenceStreams:
 Randomness = Union[torch.Generator, SequenceStreams, None]
 
 
+def sequence_seed(entropy: int, index: int) -> int:
+    """The seed of sequence ``index``'s stream: a function of ``(entropy, index)`` only
+    (``numpy.random.SeedSequence(entropy).spawn(n)[index]``, whatever ``n``)."""
+    state = np.random.SeedSequence(int(entropy), spawn_key=(int(index),)).generate_state(1, dtype=np.uint64)
+    return int(state[0] >> np.uint64(1))  # torch seeds are below 2^64; keep them in int64 too
+
+
 def sequence_seeds(entropy: int, n: int) -> list[int]:
-    """``n`` independent seeds from one integer, seed ``i`` depending on ``(entropy, i)`` only
-    (``numpy.random.SeedSequence(entropy).spawn(n)[i]``)."""
-    return [int(s.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1)) for s in
-            np.random.SeedSequence(int(entropy)).spawn(n)]
+    """The seeds of ``n`` sequences' streams (:func:`sequence_seed` of ``0, ..., n - 1``)."""
+    return [sequence_seed(entropy, i) for i in range(n)]
 
 
 def uniform(generator: Randomness, shape: tuple[int, ...], dtype: torch.dtype, device) -> Tensor:
