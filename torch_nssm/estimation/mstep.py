@@ -236,6 +236,7 @@ def _update_modules(
 ) -> list[SolverReport]:
     if _is_linear(modules):
         return _closed_form(modules, problem, groups)
+
     def settings(g: int) -> SolverSettings:  # per-sequence streams: each group's own minibatch order
         gen = options.solver.generator
         if isinstance(gen, SequenceStreams):
