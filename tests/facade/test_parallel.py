@@ -108,7 +108,7 @@ class DyingTransition(PaperTransition):
 
     def features(self, x, u):  # what the batched E-step evaluates of a module linear in its parameters
         if os.getpid() != self.owner and bool((u == SENTINEL).any()):
-            time.sleep(2.0)  # let the other chunk finish first
+            time.sleep(4.0)  # let the other chunk finish first (loky stops the others on a death)
             os._exit(3)
         return super().features(x, u)
 
