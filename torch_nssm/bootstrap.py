@@ -105,6 +105,7 @@ def parametric_bootstrap(est, u, *, n_boot: int = 100, level: float = 0.95, rand
         n_init=1,
         warm_start=False,
         first_stage=None,
+        segment_length=None,  # fit_independent runs whole records (the bootstrap records are batched)
         verbose=0,
         random_state=int(rs.randint(2**31 - 1)),
     )

@@ -21,6 +21,7 @@ from sklearn.metrics import r2_score
 from sklearn.utils import check_random_state
 from torch import nn
 
+from . import _parallel
 from . import _validation as V
 from ._stats import MAD_TO_STD, robust_scale
 from ._threads import limited_threads, with_thread_limit
@@ -34,6 +35,7 @@ from .estimation.mstep import MStepOptions
 from .estimation.solvers import SOLVERS, SolverSettings
 from .inference import prediction
 from .inference.filtering import NumericalError, particle_filter
+from .inference.random import SequenceStreams, sequence_seed
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.results import StateEstimate
 from .inference.smoothers import SMOOTHERS, smoother_options
@@ -167,6 +169,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     n_threads : int or None, default=1
         CPU threads of torch and BLAS while the estimator's methods run; the caller's settings are
         restored afterwards (docs/design.md, "Threads").  ``None`` leaves them alone.
+    n_jobs : int or None, default=None
+        Workers (processes, through joblib) for the ``n_init`` restarts of :meth:`fit` and the
+        chunks of :func:`fit_independent`: ``None`` means 1 unless a ``joblib.parallel_config``
+        context says otherwise (``backend="dask"`` runs them on a Dask cluster), ``-1`` all
+        cores.  Results equal the serial run's for the same ``random_state``; each worker uses
+        ``n_threads`` threads (README, "Running on a cluster").
     device : str or torch.device, default="cpu"
         Where the filter, smoother and M-step run (``"cuda"`` for a GPU: the data, ``f``, ``g`` and
         the random numbers live there; fitted attributes come back as NumPy arrays and pickled
@@ -253,6 +261,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         segment_overlap: int = 100,
         random_state=None,
         n_threads: int | None = 1,
+        n_jobs: int | None = None,
         device="cpu",
         dtype: torch.dtype = torch.float64,
         verbose: int = 0,
@@ -292,6 +301,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.segment_overlap = segment_overlap
         self.random_state = random_state
         self.n_threads = n_threads
+        self.n_jobs = n_jobs
         self.device = device
         self.dtype = dtype
         self.verbose = verbose
@@ -409,6 +419,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_dtype(self.dtype)
         if self.n_threads is not None:
             V.check_positive(self.n_threads, "n_threads", integer=True, minimum=1, inclusive=True)
+        if self.n_jobs is not None and (
+            isinstance(self.n_jobs, bool)
+            or not isinstance(self.n_jobs, (int, np.integer))
+            or self.n_jobs == 0
+        ):
+            raise ValueError(f"n_jobs must be a nonzero integer or None, got {self.n_jobs!r}")
         if self.x0_mean is None:
             raise ValueError("x0_mean is required: it fixes the state dimension nx")
         for name in ("f", "g"):
@@ -540,16 +556,18 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         if not warm and self.first_stage == "simulation":
             base = self._first_stage(base, data)
             staged = _copy_model(base) if self.first_stage_.accepted else None
-        rs = check_random_state(self.random_state)
         limit = _divergence_limit(base, data, warn=not warm)
-        runs: list[EMResult] = []
-        for r in range(n_runs):
-            generator = _seeded_generator(device, rs)  # run 0: the same seed as _generator()
-            start = _copy_model(base) if r == 0 else _stable_jitter(base, self.init_jitter, rs, data, limit)
-            desc = "robust EM" if n_runs == 1 else f"robust EM (run {r + 1}/{n_runs})"
-            runs.append(run_em([start], data, self._em_options(desc), generator)[0])
-            if runs[-1].interrupted:
-                break
+        seeds = _restart_seeds(self.random_state, n_runs)
+        n_workers = min(n_runs, _parallel.effective_n_jobs(self.n_jobs))
+        if n_workers > 1:  # each restart on a worker; run r depends on (random_state, r) only
+            tasks = [(self, base, data, r, seeds[r], limit, device, False) for r in range(n_runs)]
+            runs = _parallel.run_tasks(_restart, tasks, self.n_jobs, f"{n_runs} EM restarts")
+        else:
+            runs = []
+            for r in range(n_runs):
+                runs.append(_restart(self, base, data, r, seeds[r], limit, device, True))
+                if runs[-1].interrupted:
+                    break
         if runs[-1].interrupted and runs[-1].estep is None and len(runs) == 1:
             raise KeyboardInterrupt  # nothing was fitted yet
         ok = [run for run in runs if run.error is None and run.estep is not None]
@@ -1116,8 +1134,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         return (mean, cov) if multi else (mean[0], cov[0])
 
 
-def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool | None = None) -> list:
-    """Fit one copy of ``estimator`` to each data set, all E-steps in one batched pass.
+def fit_independent(
+    estimator: RobustNSSMEstimator, u, y, *, show_progress: bool | None = None, n_jobs: int | None = None
+) -> list:
+    """Fit one copy of ``estimator`` to each data set, the E-steps of a chunk of data sets in one
+    batched pass.
 
     Parameters
     ----------
@@ -1129,13 +1150,29 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
     y : list of array-like (N_b,) or (N_b, p)
         Outputs of each data set (NaN: missing).
     show_progress : bool, optional
-        Progress bar over iterations; defaults to ``estimator.verbose > 0``.
+        Progress bar over iterations (serial runs only); defaults to ``estimator.verbose > 0``.
+    n_jobs : int, optional
+        Workers (joblib): the data sets are split into as many chunks, each fitted as one batched
+        pass on a worker; defaults to ``estimator.n_jobs`` (``None``: 1 unless a
+        ``joblib.parallel_config`` context says otherwise; ``-1``: all cores).
 
     Returns
     -------
     list of RobustNSSMEstimator
         Fitted estimators, one per data set, each with its own parameters, ``history_``,
         ``n_iter_`` and ``converged_`` (a data set leaves the batch once it has converged).
+
+    Raises
+    ------
+    WorkerLostError
+        If a worker died (a crash, a memory limit): its ``results`` hold the fits that finished
+        (``None`` for the lost data sets).
+
+    Notes
+    -----
+    Each data set draws its random numbers from its own stream, seeded from ``(random_state,
+    index of the data set)`` (:class:`~torch_nssm.inference.random.SequenceStreams`): its fit is
+    the same whatever data sets it is batched with and whatever the number of workers or chunks.
     """
     device = estimator._check_params()
     if estimator.segment_length is not None:
@@ -1149,50 +1186,58 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
     us = [None] * n_sets if u is None else list(u)
     if len(us) != n_sets:
         raise ValueError(f"u and y must hold the same number of data sets, got {len(us)} and {n_sets}")
-    datas, models, estimators = [], [], []
+    datas = []
     for b in range(n_sets):
         ub, yb, _ = V.as_sequence_list(us[b], y[b], dtype=estimator.dtype, device=device)
         datas.append(SequenceBatch.from_sequences(ub, yb))
-        est_b = clone(estimator)
-        if isinstance(estimator.random_state, int):
-            est_b.random_state = estimator.random_state + b
-        estimators.append(est_b)
-        start = est_b._initial_model(datas[-1], device)
-        if estimator.first_stage == "simulation":  # per data set, before the batched EM
-            start = est_b._first_stage(start, datas[-1])
-        models.append(start)
-    all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
+    y_1d = [np.ndim(y[b]) == 1 for b in range(n_sets)]
+    entropy = _entropy(estimator.random_state)
+    n_jobs = estimator.n_jobs if n_jobs is None else n_jobs
+    n_chunks = min(n_sets, _parallel.effective_n_jobs(n_jobs))
+    chunks = [c.tolist() for c in np.array_split(np.arange(n_sets), n_chunks) if c.size]
     verbose = estimator.verbose > 0 if show_progress is None else show_progress
-    options = estimator._em_options(f"robust EM x{n_sets}")
-    if not verbose:
-        options.progress = None
-    elif options.progress is None:
-        options.progress = f"robust EM x{n_sets}"
-    with limited_threads(estimator.n_threads):
-        results = run_em(models, all_data, options, estimator._generator(device), shared=False)
-    n_unconverged = 0
-    n_rejected = 0
-    for b, (est_b, run) in enumerate(zip(estimators, results)):
-        if run.error is not None:
-            warnings.warn(f"data set {b}: {run.error}", stacklevel=2)
-        n_rejected += est_b._rejection_message(run) is not None
-        if run.estep is None:
-            raise NumericalError(f"data set {b}: {run.error}")
-        # the stored E-step is padded like the batch (lengths kept)
-        est_b._store(
-            run.model, run.history, run.estep, all_data.select(slice(b, b + 1)), False, run.n_done,
-            run.converged, y_1d=np.ndim(y[b]) == 1,
-        )
-        n_unconverged += not run.converged
+    if len(chunks) == 1:
+        outcomes = _fit_chunk(estimator, datas, list(range(n_sets)), y_1d, entropy, device, verbose)
+    else:
+        tasks = [
+            (estimator, [datas[b] for b in c], c, [y_1d[b] for b in c], entropy, device, False)
+            for c in chunks
+        ]
+        try:
+            parts = _parallel.run_tasks(_fit_chunk, tasks, n_jobs, f"fit_independent on {n_sets} data sets")
+        except _parallel.WorkerLostError as exc:
+            fits: list = [None] * n_sets
+            for c, part in zip(chunks, exc.results):
+                for b, outcome in zip(c, part or []):
+                    fits[b] = outcome[0]
+            lost = [b for i in exc.lost for b in chunks[i]]
+            raise _parallel.WorkerLostError(
+                f"{exc} (data sets {_ranges(lost)} are lost; the {n_sets - len(lost)} finished fits are in "
+                "this error's `results`, None for the lost ones; each data set's fit depends on its "
+                "random_state and its index only, so a rerun of the whole study gives the same fits)",
+                fits,
+                lost,
+            ) from exc
+        outcomes = [o for part in parts for o in part]
+    estimators = [o[0] for o in outcomes]
+    n_unconverged = n_rejected = 0
+    first_rejection = None
+    for b, (_, error, rejection, has_estep, converged, _) in enumerate(outcomes):
+        if error is not None:
+            warnings.warn(f"data set {b}: {error}", stacklevel=2)
+        if rejection is not None:
+            n_rejected += 1
+            first_rejection = first_rejection or rejection
+        if not has_estep:
+            raise NumericalError(f"data set {b}: {error}")
+        n_unconverged += not converged
     if n_rejected:
-        messages = (e._rejection_message(r) for e, r in zip(estimators, results))
-        first = next(m for m in messages if m)
         warnings.warn(
-            f"{n_rejected} of {n_sets} fits had rejected M-steps; the first: {first}",
+            f"{n_rejected} of {n_sets} fits had rejected M-steps; the first: {first_rejection}",
             RuntimeWarning,
             stacklevel=2,
         )
-    if results and results[0].interrupted:
+    if outcomes and outcomes[0][5]:
         warnings.warn(
             "fit_independent interrupted (KeyboardInterrupt): each fit holds its last completed iteration",
             RuntimeWarning,
@@ -1205,6 +1250,111 @@ def fit_independent(estimator: RobustNSSMEstimator, u, y, *, show_progress: bool
             stacklevel=2,
         )
     return estimators
+
+
+def _fit_chunk(
+    estimator: RobustNSSMEstimator,
+    datas: list[SequenceBatch],
+    indices: list[int],
+    y_1d: list[bool],
+    entropy: int,
+    device: torch.device,
+    progress: bool,
+) -> list[tuple]:
+    """Fit the data sets ``indices`` (``datas``) as one batched EM pass (on a worker or here).
+
+    Returns, per data set, ``(fitted estimator, error, rejection message, has an E-step, converged,
+    interrupted)``: the caller raises the warnings and errors of the whole study.
+    """
+    models, estimators = [], []
+    with limited_threads(estimator.n_threads):
+        for data_b, b in zip(datas, indices):
+            est_b = clone(estimator)
+            if isinstance(estimator.random_state, (int, np.integer)):
+                est_b.random_state = int(estimator.random_state) + b
+            estimators.append(est_b)
+            start = est_b._initial_model(data_b, device)
+            if estimator.first_stage == "simulation":  # per data set, before the batched EM
+                start = est_b._first_stage(start, data_b)
+            models.append(start)
+        all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
+        n = len(indices)
+        options = estimator._em_options(f"robust EM x{n}")
+        options.progress = f"robust EM x{n}" if progress else None
+        streams = SequenceStreams([sequence_seed(entropy, b) for b in indices], device)
+        options.mstep.solver.generator = streams  # each data set's minibatch orders from its stream
+        results = run_em(models, all_data, options, streams, shared=False)
+    outcomes = []
+    for j, (est_b, run) in enumerate(zip(estimators, results)):
+        rejection = est_b._rejection_message(run)
+        if run.estep is not None:
+            # the stored E-step is padded like the batch (lengths kept)
+            est_b._store(
+                run.model, run.history, run.estep, all_data.select(slice(j, j + 1)), False, run.n_done,
+                run.converged, y_1d=y_1d[j],
+            )
+        outcomes.append((est_b, run.error, rejection, run.estep is not None, run.converged, run.interrupted))
+    return outcomes
+
+
+def _ranges(indices: list[int]) -> str:
+    """``[0, 1, 2, 5]`` as ``"0-2, 5"``."""
+    parts, start = [], None
+    for i, b in enumerate(indices):
+        if start is None:
+            start = b
+        if i + 1 == len(indices) or indices[i + 1] != b + 1:
+            parts.append(str(start) if start == b else f"{start}-{b}")
+            start = None
+    return ", ".join(parts)
+
+
+def _entropy(random_state) -> int:
+    """One integer that seeds a whole study (drawn once, in the caller's process)."""
+    if random_state is None:
+        return int(np.random.SeedSequence().entropy % (2**63))
+    if isinstance(random_state, (int, np.integer)):
+        return int(random_state)
+    return int(check_random_state(random_state).randint(0, 2**31 - 1))
+
+
+def _restart_seeds(random_state, n_runs: int) -> list[int]:
+    """The seed of each EM run: run 0 the estimator's own (the one ``_generator()`` draws), run
+    ``r > 0`` the ``r``-th of a sequence drawn up front, so that run ``r`` depends on
+    ``random_state`` and ``r`` alone (not on how many draws the earlier restarts' jitter needed)."""
+    rs = check_random_state(random_state)
+    first = int(rs.randint(0, 2**31 - 1))
+    return [first] + [int(v) for v in rs.randint(0, 2**31 - 1, size=n_runs - 1)]
+
+
+def _restart(
+    estimator: RobustNSSMEstimator,
+    base: StateSpaceModel,
+    data: SequenceBatch,
+    r: int,
+    seed: int,
+    limit: float,
+    device: torch.device,
+    progress: bool,
+) -> EMResult:
+    """EM run ``r`` of :meth:`RobustNSSMEstimator.fit` (here or on a worker): run 0 from ``base``,
+    the others from a jittered copy, all randomness from ``seed``."""
+    n_runs = estimator.n_init
+    with limited_threads(estimator.n_threads):
+        rs = np.random.RandomState(seed)
+        if r == 0:  # the particle seed of a single fit, as before restarts existed
+            generator = torch.Generator(device=device).manual_seed(seed)
+        else:
+            generator = _seeded_generator(device, rs)
+        if r == 0:
+            start = _copy_model(base)
+        else:
+            start = _stable_jitter(base, estimator.init_jitter, rs, data, limit)
+        desc = "robust EM" if n_runs == 1 else f"robust EM (run {r + 1}/{n_runs})"
+        options = estimator._em_options(desc)
+        if not progress:
+            options.progress = None
+        return run_em([start], data, options, generator)[0]
 
 
 def _seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.Generator:

@@ -20,6 +20,7 @@ import torch
 
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
+from ..inference.random import SequenceStreams
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
@@ -170,7 +171,7 @@ def run_em(
     models: list[StateSpaceModel],
     data: SequenceBatch,
     options: EMOptions,
-    generator: torch.Generator | None = None,
+    generator: torch.Generator | SequenceStreams | None = None,
     *,
     shared: bool = True,
 ) -> list[EMResult]:
@@ -184,8 +185,9 @@ def run_em(
         in place.
     data : SequenceBatch
     options : EMOptions
-    generator : torch.Generator, optional
-        The particle methods' random numbers.
+    generator : torch.Generator or SequenceStreams, optional
+        The particle methods' random numbers: one generator, or one stream per group
+        (``shared=False``: each group's draws then depend on its own stream alone).
 
     Returns
     -------
@@ -207,8 +209,9 @@ def run_em(
     def estep(groups: list[int], iteration: int | None) -> _Batch:
         batch = _Batch(groups, models, data, shared)
         est_options = replace(options.estep, n_particles=options.n_particles(iteration))
+        gen = generator.select(groups) if isinstance(generator, SequenceStreams) else generator
         previous = last[groups[0]][0] if shared and last[groups[0]] is not None else None
-        est = e_step(batch.model, batch.data, est_options, generator, previous, records=False)
+        est = e_step(batch.model, batch.data, est_options, gen, previous, records=False)
         for j, g in enumerate(groups):
             last[g] = (est, j)
         return batch
@@ -246,7 +249,11 @@ def run_em(
             else:
                 sel = torch.tensor(update, device=data.y.device)
                 sub_data, sub_est = batch.data.select(sel), est.select(sel)
-            result = m_step([models[g] for g in ids], sub_data, sub_est, options.mstep, shared=shared)
+            m_options = options.mstep
+            if isinstance(generator, SequenceStreams):  # each data set's minibatches from its stream
+                solver = replace(m_options.solver, generator=generator.select(ids))
+                m_options = replace(m_options, solver=solver)
+            result = m_step([models[g] for g in ids], sub_data, sub_est, m_options, shared=shared)
             still = []
             for g, new, error, report in zip(ids, result.models, result.errors, result.reports):
                 if error is not None:

@@ -32,6 +32,7 @@ from .._ops import inverse_cholesky, linear_combination, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
+from ..inference.random import SequenceStreams
 from .estep import EStepOutput
 from .independent import StackedModule
 from .solvers import RegressionRows, SolverReport, SolverSettings, fit_weighted_regression
@@ -240,8 +241,15 @@ def _update_modules(
 ) -> list[SolverReport]:
     if _is_linear(modules):
         return _closed_form(modules, problem, groups)
+
+    def settings(g: int) -> SolverSettings:  # per-sequence streams: each group's own minibatch order
+        gen = options.solver.generator
+        if isinstance(gen, SequenceStreams):
+            return replace(options.solver, generator=gen.cpu_generator(g))
+        return options.solver
+
     return [
-        fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, options.solver)
+        fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, settings(g))
         for g, m in enumerate(modules)
     ]
 

@@ -16,6 +16,7 @@ from torch import Tensor, nn
 from .._ops import small_matmul
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MaskedScale, masked_scale
+from .random import Randomness, SequenceStreams
 from .resampling import get_resampler, systematic, systematic_from_cumsum, systematic_grid
 
 __all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
@@ -75,17 +76,23 @@ class FilterOutput:
         )
 
 
-def _process_noise(model: StateSpaceModel, L: int, generator, out: Tensor) -> None:
+def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: Tensor, lengths=None) -> None:
     """All process-noise draws ``w ~ N(0, Rw)`` at once into ``out`` ``(T - 1, B, L, nx)``.
 
     Standard normals are drawn in single precision (2x faster than double on CPU; the 24-bit draws
     are more than enough for Monte Carlo noise) and shaped by ``chol(Rw)`` elementwise (tiny
-    matrices) in the output's dtype.
+    matrices) in the output's dtype.  With per-sequence streams, sequence ``b`` draws its
+    ``lengths[b] - 1`` steps (zero noise on padded steps).
     """
-    _, B, _, nx = out.shape
+    T1, B, _, nx = out.shape
     Cw = torch.linalg.cholesky(model.per_sequence("Rw", B)).to(out.dtype)
     noise_dtype = torch.float32 if out.dtype == torch.float64 else out.dtype
-    noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
+    if isinstance(generator, SequenceStreams):
+        limits = [int(n) - 1 for n in lengths]
+        noise = generator.steps(0, T1, limits, tuple(out.shape[2:]), noise_dtype, normal=True, fill=0.0)
+        noise = noise.transpose(0, 1)
+    else:
+        noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
     if nx == 1:
         torch.mul(noise, Cw.view(B, 1, 1), out=out)
     else:
@@ -99,11 +106,14 @@ def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
     return frozen() if callable(frozen) else module
 
 
-def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator=None) -> Tensor:
+def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator: Randomness = None) -> Tensor:
     """``L`` draws of the initial-state prior for each of ``B`` sequences, shape ``(B, L, nx)``."""
     m0 = model.per_sequence("x0_mean", B)
     C0 = torch.linalg.cholesky(model.per_sequence("x0_cov", B))
-    eps = torch.randn(B, L, m0.shape[-1], dtype=m0.dtype, device=m0.device, generator=generator)
+    if isinstance(generator, SequenceStreams):
+        eps = generator.normal((L, m0.shape[-1]), m0.dtype)
+    else:
+        eps = torch.randn(B, L, m0.shape[-1], dtype=m0.dtype, device=m0.device, generator=generator)
     return m0.unsqueeze(1) + eps @ C0.transpose(-1, -2)
 
 
@@ -115,7 +125,7 @@ def particle_filter(
     *,
     resampling: str = "systematic",
     ess_threshold: float = 1.0,
-    generator: torch.Generator | None = None,
+    generator: Randomness = None,
     initial_particles: Tensor | None = None,
 ) -> FilterOutput:
     """Run the bootstrap particle filter over a batch of sequences.
@@ -131,8 +141,9 @@ def particle_filter(
     ess_threshold : float
         Resample a sequence when its ESS falls below ``ess_threshold * L``; ``1.0`` resamples at
         every step, ``0.0`` never.
-    generator : torch.Generator, optional
-        Source of randomness (for reproducible runs).
+    generator : torch.Generator or SequenceStreams, optional
+        Source of randomness (for reproducible runs); :class:`~torch_nssm.inference.random.SequenceStreams`
+        draws each sequence's numbers from its own stream (independent fits).
     initial_particles : Tensor, shape (B, L, nx), optional
         Equally weighted draws of the first state of each sequence, in place of draws from the
         model's prior ``N(x0_mean, x0_cov)`` (the time-parallel E-step's windows start so).
@@ -152,6 +163,8 @@ def particle_filter(
     L = n_particles
     scale = masked_scale(model.noise.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density
+    streams = generator if isinstance(generator, SequenceStreams) else None
+    lengths = data.lengths.tolist() if streams is not None else None
     if initial_particles is None:
         x0 = sample_initial_state(model, B, L, generator)
     else:
@@ -167,11 +180,16 @@ def particle_filter(
     arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange
     if T > 1:
-        _process_noise(model, L, generator, out=particles[1:])  # x_k = f(.) + noise, added in place
+        _process_noise(model, L, generator, particles[1:], lengths)  # x_k = f(.) + noise, added in place
     always = ess_threshold >= 1.0
     # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
     if fast_systematic:
-        uniforms = torch.rand(max(T - 1, 0), B, 1, dtype=dtype, device=device, generator=generator).unbind(0)
+        if streams is not None:  # step k (1 <= k < T_b) of sequence b: its draw k - 1
+            uniforms = streams.steps(0, max(T - 1, 0), [n - 1 for n in lengths], (1,), dtype)
+            uniforms = uniforms.transpose(0, 1).contiguous().unbind(0)
+        else:
+            shape = (max(T - 1, 0), B, 1)
+            uniforms = torch.rand(shape, dtype=dtype, device=device, generator=generator).unbind(0)
         grid = systematic_grid(B, L, dtype, device)
         ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
     y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
@@ -202,7 +220,8 @@ def particle_filter(
                 out = A[k] if always else None
                 anc = systematic_from_cumsum(cumw, uniforms[k - 1], out=out, grid=grid, ones=ones)
             else:  # the schemes normalise (softmax): the stored logit - m will do
-                anc = resample(LW[k - 1] if always else log_w, generator=generator)
+                gen = generator if streams is None else streams.at_step([k < n for n in lengths])
+                anc = resample(LW[k - 1] if always else log_w, generator=gen)
             if always and not fast_systematic:
                 A[k].copy_(anc)
             elif not always:

@@ -14,6 +14,8 @@ from typing import Callable
 import torch
 from torch import Tensor
 
+from . import random as _random
+
 __all__ = [
     "RESAMPLING_SCHEMES",
     "effective_sample_size",
@@ -81,18 +83,18 @@ def inverse_cdf(cdf: Tensor, u: Tensor) -> Tensor:
 
 
 def multinomial(
-    log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None
+    log_weights: Tensor, n: int | None = None, generator: _random.Randomness = None
 ) -> Tensor:
     """Multinomial resampling: ``n`` i.i.d. draws from the weights of each row."""
     n = log_weights.shape[-1] if n is None else n
     w = torch.softmax(log_weights, dim=-1)
-    return torch.multinomial(w, n, replacement=True, generator=generator)
+    return _random.multinomial(w, n, generator)
 
 
-def systematic(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
+def systematic(log_weights: Tensor, n: int | None = None, generator: _random.Randomness = None) -> Tensor:
     """Systematic resampling: one uniform ``u`` per row, positions ``(j + 1 - u) / n``."""
     B, L = log_weights.shape
-    u = torch.rand(B, 1, dtype=log_weights.dtype, device=log_weights.device, generator=generator)
+    u = _random.uniform(generator, (B, 1), log_weights.dtype, log_weights.device)
     return systematic_from_cumsum(torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1), u, n)
 
 
@@ -168,16 +170,16 @@ def systematic_from_cumsum(
     return torch.cumsum(marks[:, :n], dim=1, out=out)
 
 
-def stratified(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
+def stratified(log_weights: Tensor, n: int | None = None, generator: _random.Randomness = None) -> Tensor:
     """Stratified resampling: one uniform per stratum ``[j/n, (j+1)/n)``."""
     B, L = log_weights.shape
     n = L if n is None else n
-    u = torch.rand(B, n, dtype=log_weights.dtype, device=log_weights.device, generator=generator)
+    u = _random.uniform(generator, (B, n), log_weights.dtype, log_weights.device)
     j = torch.arange(n, dtype=log_weights.dtype, device=log_weights.device)
     return inverse_cdf(cumulative_weights(log_weights), (j + u) / n)
 
 
-def residual(log_weights: Tensor, n: int | None = None, generator: torch.Generator | None = None) -> Tensor:
+def residual(log_weights: Tensor, n: int | None = None, generator: _random.Randomness = None) -> Tensor:
     """Residual resampling: ``floor(n W_i)`` deterministic copies, the rest multinomially."""
     B, L = log_weights.shape
     n = L if n is None else n
@@ -188,7 +190,7 @@ def residual(log_weights: Tensor, n: int | None = None, generator: torch.Generat
     n_rest = n - counts.sum(-1)  # (B,)
     rest = (n * w - counts).clamp_min(0.0)
     rest = torch.where(rest.sum(-1, keepdim=True) > 0, rest, torch.ones_like(rest))
-    draws = torch.multinomial(rest, n, replacement=True, generator=generator)  # (B, n)
+    draws = _random.multinomial(rest, n, generator)  # (B, n)
     use = torch.arange(n, device=w.device).unsqueeze(0) < n_rest.unsqueeze(-1)
     counts = counts.scatter_add(-1, draws, use.to(counts.dtype))
     ends = torch.cumsum(counts, dim=-1)

@@ -37,6 +37,7 @@ from torch import Tensor
 from .._ops import inverse_cholesky, small_matmul, squared_norm, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from .filtering import FilterOutput
+from .random import Randomness, SequenceStreams
 from .resampling import cumulative_weights, inverse_cdf
 
 __all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT"]
@@ -389,7 +390,7 @@ def ffbsi(
     method: str = "reject",
     max_tries: int = 10,
     mcmc_steps: int = 1,
-    generator: torch.Generator | None = None,
+    generator: Randomness = None,
 ) -> SmootherOutput:
     """Backward-simulation particle smoother (FFBSi), ``O(T (L + M))`` per pass.
 
@@ -413,7 +414,10 @@ def ffbsi(
         Rejection proposals per index before the exact fallback.
     mcmc_steps : int
         Metropolis-Hastings moves per index.
-    generator : torch.Generator, optional
+    generator : torch.Generator or SequenceStreams, optional
+        With per-sequence streams (:mod:`torch_nssm.inference.random`) each sequence's backward
+        pass starts at its own last step and draws, per step, a fixed number of uniforms in
+        reverse time order (rejection: its whole ``max_tries`` budget), whatever its batch.
 
     Returns
     -------
@@ -432,14 +436,33 @@ def ffbsi(
     all_valid = trans.all(-1).tolist()
 
     Js = torch.empty(T, B, M, dtype=torch.long, device=device)  # the trajectories' indices
-    Js[T - 1] = _draw(logW[T - 1], M, generator)
+    streams = generator if isinstance(generator, SequenceStreams) else None
+    if streams is None:
+        Js[T - 1] = _draw(logW[T - 1], M, generator)
+    else:  # each sequence starts at its own last step; the rows past it restart from there
+        last = data.lengths - 1
+        logW_last = logW[last, torch.arange(B, device=device)]  # (B, L)
+        J_last = inverse_cdf(cumulative_weights(logW_last), streams.rows((M,), dtype))
+        Js[T - 1] = J_last
+        limits = [n - 1 for n in data.lengths.tolist()]  # steps with a transition
+        n_mcmc, n_reject = M * mcmc_steps, (2 * max_tries + 1) * M
     for blk in reversed(list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))):
         t = blk.stop - blk.start
         zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
+        if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
+            n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
+            draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), dtype, reverse=True)
         if method == "mcmc":
-            props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
-            u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
-            log_us = torch.log(u)
+            if streams is None:
+                props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
+                u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
+            else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
+                d = draws.view(B, t, 2, n_mcmc)
+                cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
+                u = d[:, :, 0].reshape(B * t, n_mcmc).contiguous()  # strided: inverse_cdf 3x slower
+                props = inverse_cdf(cdf, u).view(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
+                u = d[:, :, 1].reshape(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
+            log_us = torch.log(u)  # time-major (each step's rows contiguous), reversed with streams
         else:
             cdfs = cumulative_weights(logW[blk])  # (t, B, L)
         for k in range(blk.stop - 1, blk.start - 1, -1):
@@ -451,11 +474,18 @@ def ffbsi(
                 x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
             if method == "mcmc":
                 parent = torch.gather(filt.ancestors[k + 1], 1, J_next)
-                J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
-                restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
+                if streams is None:
+                    J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
+                    restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
+                else:
+                    j = blk.stop - 1 - k
+                    J = _independent_mh(parent, zf[i], x_next, props[j], log_us[j])
             else:
-                J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator)
+                pre = None if streams is None else draws[:, blk.stop - 1 - k]
+                J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
                 restart = None
+            if streams is not None:
+                restart = J_last
             if not all_valid[k]:
                 # Rows past a sequence's end restart from the filter (their transitions are masked out).
                 if restart is None:
@@ -466,15 +496,22 @@ def ffbsi(
     return _trajectory_statistics(X, logW, Js, trans)
 
 
-def _reject(zf: Tensor, zx: Tensor, logW: Tensor, cdf: Tensor, max_tries: int, generator) -> Tensor:
+def _reject(
+    zf: Tensor, zx: Tensor, logW: Tensor, cdf: Tensor, max_tries: int, generator, pre: Tensor | None = None
+) -> Tensor:
     """Backward indices ``(B, M)`` drawn exactly from the backward kernels of trajectories ``zx``
     ``(B, M, nx)``: proposals from the filter weights (``cdf`` ``(B, L)``) accepted with probability
-    ``exp(-|z_x - z_f|^2 / 2) <= 1``; after ``max_tries`` failures, the exact ``O(L)`` draw."""
+    ``exp(-|z_x - z_f|^2 / 2) <= 1``; after ``max_tries`` failures, the exact ``O(L)`` draw.
+    ``pre`` ``(B, (2 max_tries + 1) M)``: the uniforms of every try and of the fallback, drawn up
+    front (per-sequence streams), else they are drawn from ``generator`` as needed."""
     B, M = zx.shape[:2]
     J = torch.zeros(B, M, dtype=torch.long, device=zx.device)
     pending = torch.ones(B, M, dtype=torch.bool, device=zx.device)
-    for _ in range(max_tries):
-        u = torch.rand(2, B, M, dtype=zx.dtype, device=zx.device, generator=generator)
+    for j in range(max_tries):
+        if pre is None:
+            u = torch.rand(2, B, M, dtype=zx.dtype, device=zx.device, generator=generator)
+        else:
+            u = pre[:, 2 * j * M : 2 * (j + 1) * M].reshape(B, 2, M).transpose(0, 1)
         prop = inverse_cdf(cdf, u[0])
         accept = pending & (torch.log(u[1]) < _log_kernel(zf, prop, zx))
         J = torch.where(accept, prop, J)
@@ -484,7 +521,11 @@ def _reject(zf: Tensor, zx: Tensor, logW: Tensor, cdf: Tensor, max_tries: int, g
     b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
     d = zx[b_idx, m_idx].unsqueeze(1) - zf[b_idx]  # (P, L, nx)
     logits = logW[b_idx] - 0.5 * squared_norm(d)
-    J[b_idx, m_idx] = _draw(logits, 1, generator)[:, 0]
+    if pre is None:
+        J[b_idx, m_idx] = _draw(logits, 1, generator)[:, 0]
+    else:
+        u = pre[:, 2 * max_tries * M :][b_idx, m_idx].unsqueeze(-1)
+        J[b_idx, m_idx] = inverse_cdf(cumulative_weights(logits), u.contiguous())[:, 0]
     return J
 
 
