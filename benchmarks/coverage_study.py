@@ -9,8 +9,8 @@ against the true ``a``, ``b``, ``c``; the script prints the coverage of each par
 binomial standard error, the mean standard error against the Monte Carlo s.d. of the estimates,
 and the cost of the information against one E-step.
 
-    python benchmarks/coverage.py                      # 100 data sets
-    python benchmarks/coverage.py --sets 20 --iters 20 # a quick look
+    python benchmarks/coverage_study.py                      # 100 data sets
+    python benchmarks/coverage_study.py --sets 20 --iters 20 # a quick look
 """
 
 from __future__ import annotations
