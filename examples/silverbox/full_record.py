@@ -25,16 +25,8 @@ import numpy as np
 import torch
 
 from silverbox.data import SILVERBOX_ARROW_END, load_silverbox
-from silverbox.study import (
-    PUBLISHED_RMSE_MV,
-    DuffingTransition,
-    PositionObservation,
-    arrow_rmse_mv,
-    equation_error_init,
-    prepare_silverbox,
-    simulate_arrow,
-)
-from torch_nssm import RobustNSSMEstimator
+from silverbox.first_stage_comparison import estimator  # the same grey box, start and settings
+from silverbox.study import PUBLISHED_RMSE_MV, arrow_rmse_mv, prepare_silverbox, simulate_arrow
 
 HELD = dict(
     first_stage="simulation", fit_Rw=False, Rw_init=[1e-6, 1e-6], segment_length=1000, segment_overlap=100
@@ -51,24 +43,6 @@ SETTINGS = {
         noise="student-t", first_stage=None, segment_length=1000, segment_overlap=100
     ),
 }
-
-
-def estimator(data, iterations: int, **overrides) -> RobustNSSMEstimator:
-    init, scale = equation_error_init(data.u_train, data.y_train, nonlinear=True, return_scale=True)
-    params = dict(
-        x0_mean=[float(data.y_train[0, 0]), float(data.y_train[1, 0] - data.y_train[0, 0])],
-        x0_cov=[0.05, 0.5],
-        Rw_init=[scale**2, scale**2],
-        Rv_init=1e-3,
-        n_particles=100,
-        n_iter=iterations,
-        average_last=min(5, iterations),
-        tol=0,
-        smoother="mcmc",
-        random_state=0,
-    )
-    params.update(overrides)
-    return RobustNSSMEstimator(DuffingTransition(**init, nonlinear=True), PositionObservation(), **params)
 
 
 def main(argv=None) -> list[dict]:
@@ -93,7 +67,7 @@ def main(argv=None) -> list[dict]:
         for name, overrides in SETTINGS.items():
             if a.only and not any(word in name for word in a.only):
                 continue
-            est = estimator(data, a.n_iter, **overrides)
+            est = estimator(data, **{"n_iter": a.n_iter, "average_last": min(5, a.n_iter), **overrides})
             t0 = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
