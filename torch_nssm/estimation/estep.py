@@ -130,6 +130,7 @@ def e_step(
     filt = _filter(model, data, options, generator)
     smooth = _smooth(model, data, filt, options, generator)
     e_lam, e_log = latent_scales(model, data, filt)
+    filt.noise_statistics = None  # consumed: one (T, B, L) tensor less held by the output
     return EStepOutput(filt, smooth, e_lam, e_log)
 
 
@@ -166,6 +167,7 @@ def segmented_e_step(
     filt = _filter(model, windows.data, options, generator, initial_particles=x0)
     smooth = _smooth(model, windows.data, filt, options, generator)
     e_lam, e_log = latent_scales(model, windows.data, filt)
+    filt.noise_statistics = None  # consumed
     # what the M-step sees: the steps and transitions each window owns
     owned = windows.owned()
     filt.log_likelihood = torch.where(owned, filt.log_likelihood_steps, 0.0).sum(0)
