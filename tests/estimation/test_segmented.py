@@ -199,3 +199,16 @@ def test_segment_length_is_checked_and_refused_for_independent_fits():
     est.set_params(segment_length=20)
     with pytest.raises(ValueError, match="segment_length"):
         fit_independent(est, [np.zeros(50)] * 2, [np.zeros(50)] * 2)
+
+
+def test_segmented_smoothing_of_a_new_record_with_its_own_first_state():
+    """``smooth(..., x0=...)`` gives each record its own prior; the windows take their record's."""
+    data = make_paper_example(n_samples=1200, random_state=5)
+    est, _ = _paper_fit(data.y, data.u, 0, segment_length=300)
+    new = make_paper_example(n_samples=900, random_state=6)
+    for x0 in (None, [float(new.x[0, 0])], "estimate"):
+        sm = est.smooth(new.u, new.y, x0=x0)
+        assert sm.mean.shape == (900, 1) and np.all(np.isfinite(sm.mean))
+        assert np.sqrt(np.mean((sm.mean[:, 0] - new.x[:, 0]) ** 2)) < 0.6
+    two = est.smooth([new.u, data.u], [new.y, data.y], x0=[[float(new.x[0, 0])], [float(data.x[0, 0])]])
+    assert [s.mean.shape for s in two] == [(900, 1), (1200, 1)]

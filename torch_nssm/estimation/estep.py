@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -155,13 +155,21 @@ def segmented_e_step(
     if model.Rw.dim() != 2:
         raise ValueError("segment_length needs one model for all records (not independent fits)")
     windows = cut(data, options.segment_length, options.segment_overlap)
+    # the model with its first states' prior per window (a per-record prior, e.g. from
+    # ``smooth(..., x0=...)``, taken by record)
+    B = data.n_sequences
+    prior = replace(
+        model,
+        x0_mean=model.per_sequence("x0_mean", B)[windows.record],
+        x0_cov=model.per_sequence("x0_cov", B)[windows.record],
+    )
     later = torch.nonzero(~windows.first).flatten()
     t, b = windows.start[later] - 1, windows.record[later]  # the step before each later window
     if previous is not None and _same_records(previous, windows, data):
         X, logW = _filter_rows(previous.filter, previous.windows, t, b)
     else:  # a filter-only pass from the prior; the step's owning window has passed its burn-in
-        X, logW = _filter_rows(_filter(model, windows.data, options, generator), windows, t, b)
-    x0 = sample_initial_state(model, windows.n_windows, options.n_particles, generator)
+        X, logW = _filter_rows(_filter(prior, windows.data, options, generator), windows, t, b)
+    x0 = sample_initial_state(prior, windows.n_windows, options.n_particles, generator)
     if later.numel():
         x0[later] = _predicted(model, X, logW, data.u[t, b], options.n_particles, generator)
     filt = _filter(model, windows.data, options, generator, initial_particles=x0)
