@@ -34,6 +34,25 @@ def _rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def paper_model():
+    """The Section 4.1 model at the true parameters (Gaussian noise), the start of every E-step."""
+    import torch
+
+    from torch_nssm.core.model import StateSpaceModel
+    from torch_nssm.core.noise import GaussianNoise
+    from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    return StateSpaceModel(
+        PaperTransition(0.9, 1.0),
+        PaperObservation(1.0),
+        t([[0.1]]),
+        GaussianNoise(t([[0.1]])),
+        t([0.0]),
+        t([[1.0]]),
+    )
+
+
 def _worker(impl: str, N: int, L: int, segment: int, overlap: int, seed: int) -> dict:
     sys.path.insert(0, HERE)
     import numpy as np
@@ -58,25 +77,14 @@ def _worker(impl: str, N: int, L: int, segment: int, overlap: int, seed: int) ->
         }
     import torch
 
-    from torch_nssm.core.model import SequenceBatch, StateSpaceModel
-    from torch_nssm.core.noise import GaussianNoise
-    from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+    from torch_nssm.core.model import SequenceBatch
     from torch_nssm.estimation.estep import EStepOptions, e_step
     from torch_nssm.estimation.mstep import MStepOptions, m_step
 
     torch.set_num_threads(1)
     t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    model = paper_model
     batch = SequenceBatch.from_sequences([t(u).reshape(-1, 1)], [t(y).reshape(-1, 1)])
-
-    def model():
-        return StateSpaceModel(
-            PaperTransition(0.9, 1.0),
-            PaperObservation(1.0),
-            t([[0.1]]),
-            GaussianNoise(t([[0.1]])),
-            t([0.0]),
-            t([[1.0]]),
-        )
 
     opts = EStepOptions(L, impl, segment_length=segment or None, segment_overlap=overlap)
     gen = torch.Generator().manual_seed(seed)

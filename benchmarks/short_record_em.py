@@ -20,27 +20,15 @@ import torch
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import peers  # noqa: E402
+from long_records import paper_model  # noqa: E402
 
-from torch_nssm.core.model import SequenceBatch, StateSpaceModel  # noqa: E402
-from torch_nssm.core.noise import GaussianNoise  # noqa: E402
-from torch_nssm.datasets.paper import PaperObservation, PaperTransition  # noqa: E402
+from torch_nssm.core.model import SequenceBatch  # noqa: E402
 from torch_nssm.estimation.estep import EStepOptions, e_step  # noqa: E402
 from torch_nssm.estimation.mstep import MStepOptions, m_step  # noqa: E402
 
 
 def em_iteration(batch: SequenceBatch, L: int, segment_length: int | None, repeat: int = 5) -> float:
-    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
-
-    def model():
-        return StateSpaceModel(
-            PaperTransition(0.9, 1.0),
-            PaperObservation(1.0),
-            t([[0.1]]),
-            GaussianNoise(t([[0.1]])),
-            t([0.0]),
-            t([[1.0]]),
-        )
-
+    model = paper_model
     opts = EStepOptions(L, "mcmc", segment_length=segment_length, segment_overlap=25)
     gen = torch.Generator().manual_seed(0)
     previous = e_step(model(), batch, opts, gen, records=False)

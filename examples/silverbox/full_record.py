@@ -18,15 +18,13 @@ the record is ~87,000 samples).
 from __future__ import annotations
 
 import argparse
-import time
-import warnings
 
 import numpy as np
 import torch
 
 from silverbox.data import SILVERBOX_ARROW_END, load_silverbox
-from silverbox.first_stage_comparison import estimator  # the same grey box, start and settings
-from silverbox.study import PUBLISHED_RMSE_MV, arrow_rmse_mv, prepare_silverbox, simulate_arrow
+from silverbox.first_stage_comparison import estimator, fit_and_score  # the same grey box and settings
+from silverbox.study import PUBLISHED_RMSE_MV, prepare_silverbox
 
 HELD = dict(
     first_stage="simulation", fit_Rw=False, Rw_init=[1e-6, 1e-6], segment_length=1000, segment_overlap=100
@@ -63,17 +61,11 @@ def main(argv=None) -> list[dict]:
     rows = []
     for label, fraction in (("5 % outliers", 0.05), ("clean", 0.0)):
         data = prepare_silverbox(n_train=n_train, outlier_fraction=fraction, random_state=0)
-        y_arrow_mv = data.to_mv(data.y_arrow[:, 0])
         for name, overrides in SETTINGS.items():
             if a.only and not any(word in name for word in a.only):
                 continue
             est = estimator(data, **{"n_iter": a.n_iter, "average_last": min(5, a.n_iter), **overrides})
-            t0 = time.perf_counter()
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                est.fit(data.u_train, data.y_train)
-            seconds = time.perf_counter() - t0
-            rmse = arrow_rmse_mv(simulate_arrow(est, data), y_arrow_mv)
+            rmse, seconds = fit_and_score(est, data)
             dof = "-" if est.n_iter_ == 0 or est.noise == "gaussian" else f"{est.dof_:.2f}"
             detected = "-"
             if est.n_iter_ and est.noise != "gaussian" and data.outlier_mask.any():
