@@ -71,8 +71,9 @@ def measure(build, L: int, repeats: int = 5) -> tuple[float, float]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est = build(L)
-    model, estep, data = est._uncertainty_source
+    model, data = est._uncertainty_source
     options = est._em_options().estep
+    estep = e_step(model, data, options, torch.Generator().manual_seed(0))  # the fit's kind of E-step
     observed_information(model, data, estep)  # imports, caches
     info, step = [], []
     for r in range(repeats):
