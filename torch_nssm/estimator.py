@@ -29,7 +29,7 @@ from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import NOISE_MODELS, get_noise_model, symmetric_pd
 from .core.parametric import LinearInParameters
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
-from .estimation.first_stage import simulation_error_fit
+from .estimation.first_stage import first_stage_applies, held_process_noise, simulation_error_fit
 from .estimation.loop import EMOptions, EMResult, run_em
 from .estimation.mstep import MStepOptions
 from .estimation.solvers import SOLVERS, SolverSettings
@@ -88,9 +88,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Estimate the DOF; if False it stays at ``dof_init``.
     dof_bounds : (float, float), default=(0.1, 1000.0)
         Bracket of the DOF root-solve.
-    fit_Rw : bool, default=True
+    fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
-        the physics, or to isolate the estimation of ``f``).
+        the physics, or for a simulation model).  ``"auto"``: estimate it, but when the first
+        stage ran and EM made the model's noise-free simulation of the training record more than
+        10 % worse than the first stage's (the process noise carrying what ``f`` should simulate),
+        run EM again from the first stage with the process noise held small and keep that fit if
+        it simulates better (a warning says so; ``fit_Rw_`` says what the kept fit did).
     fit_Rv : bool, default=True
         Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
@@ -118,11 +122,15 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         squares, for ``g`` linear in its parameters) and its own particle seed.
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (docs/design.md).
-    first_stage : {None, "simulation"}, default=None
+    first_stage : {"auto", "simulation", None}, default="auto"
         ``"simulation"``: before EM, fit ``f``, ``g`` and the first state by robust (Cauchy) simulation
         error over windows of ``FIRST_STAGE_WINDOW`` samples (multiple shooting), and start EM there
         (:mod:`torch_nssm.estimation.first_stage`); ``first_stage_`` reports the simulation RMSE
         before and after.  Restarts (``n_init``) jitter around the first stage's result.
+        ``"auto"``: the same for physical and grey-box models (free parameters, no network layer
+        in ``f`` or ``g``) when ``n_iter > 0``; models with networks start with
+        :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts from the given
+        values.  docs/design.md, "How a fit starts".
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
@@ -203,6 +211,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         missing); per output for ``"student-t-per-output"``.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
+    first_stage_ : FirstStageReport or None
+        What the first stage did (simulation errors before and after, whether it was kept, the
+        free-run error scales after the first stage and after EM); ``None`` if it did not run.
+    fit_Rw_ : bool
+        Whether the kept fit estimated the process noise (False when ``fit_Rw="auto"`` held it).
     init_log_likelihoods_ : ndarray of shape (n_init,)
         Final log-likelihood estimate of each run (``-inf`` for a run stopped by a
         :class:`~torch_nssm.NumericalError`).
@@ -236,7 +249,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         noise: str = "student-t",
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
-        fit_Rw: bool = True,
+        fit_Rw: bool | str = "auto",
         fit_Rv: bool = True,
         fit_x0: bool = True,
         n_particles: int = 200,
@@ -246,7 +259,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         tol: float = 1e-3,
         n_init: int = 1,
         init_jitter: float = 1.0,
-        first_stage: str | None = None,
+        first_stage: str | None = "auto",
         warm_start: bool = False,
         optimizer: str = "lbfgs",
         max_iter_mstep: int = 20,
@@ -373,7 +386,9 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_choice(self.optimizer, "optimizer", sorted(SOLVERS))
         V.check_choice(self.smoother, "smoother", sorted(SMOOTHERS))
         if self.first_stage is not None:
-            V.check_choice(self.first_stage, "first_stage", ["simulation"])
+            V.check_choice(self.first_stage, "first_stage", ["auto", "simulation"])
+        if not (isinstance(self.fit_Rw, (bool, np.bool_)) or self.fit_Rw == "auto"):
+            raise ValueError(f"fit_Rw must be True, False or 'auto', got {self.fit_Rw!r}")
         V.check_choice(self.resampling, "resampling", sorted(RESAMPLING_SCHEMES))
         V.check_positive(self.n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
         if self.n_particles_final is not None:
@@ -465,8 +480,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         noise = get_noise_model(self.noise).initial(Rv, float(self.dof_init))
         return StateSpaceModel(f, g, Rw, noise, x0_mean, x0_cov)
 
-    def _em_options(self, progress: str | None = None) -> EMOptions:
-        """The EM loop's settings from the estimator's parameters."""
+    def _em_options(self, progress: str | None = None, *, fit_Rw: bool | None = None) -> EMOptions:
+        """The EM loop's settings from the estimator's parameters (``fit_Rw`` overrides theirs)."""
         smoother_opts = dict(self.smoother_options or {})
         if self.chunk_size is not None and self.smoother == "ffbsm":
             smoother_opts.setdefault("chunk_size", self.chunk_size)
@@ -495,7 +510,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 fit_dof=bool(self.fit_dof),
                 dof_bounds=tuple(float(b) for b in self.dof_bounds),
                 fit_x0=bool(self.fit_x0),
-                fit_Rw=bool(self.fit_Rw),
+                fit_Rw=bool(self.fit_Rw) if fit_Rw is None else fit_Rw,
                 fit_Rv=bool(self.fit_Rv),
             ),
             progress=progress if self.verbose else None,
@@ -553,19 +568,23 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
         staged = None
-        if not warm and self.first_stage == "simulation":
+        if not warm:
+            self.first_stage_ = None
+        if not warm and self._runs_first_stage(base):
             base = self._first_stage(base, data)
             staged = _copy_model(base) if self.first_stage_.accepted else None
         limit = _divergence_limit(base, data, warn=not warm)
         seeds = _restart_seeds(self.random_state, n_runs)
         n_workers = min(n_runs, _parallel.effective_n_jobs(self.n_jobs))
+        # a warm start continues what the fit did with the process noise (fit_Rw="auto" may have held it)
+        fit_Rw = self._fitted_Rw() if warm else None
         if n_workers > 1:  # each restart on a worker; run r depends on (random_state, r) only
-            tasks = [(self, base, data, r, seeds[r], limit, device, False) for r in range(n_runs)]
+            tasks = [(self, base, data, r, seeds[r], limit, device, False, fit_Rw) for r in range(n_runs)]
             runs = _parallel.run_tasks(_restart, tasks, self.n_jobs, f"{n_runs} EM restarts")
         else:
             runs = []
             for r in range(n_runs):
-                runs.append(_restart(self, base, data, r, seeds[r], limit, device, True))
+                runs.append(_restart(self, base, data, r, seeds[r], limit, device, True, fit_Rw))
                 if runs[-1].interrupted:
                     break
         if runs[-1].interrupted and runs[-1].estep is None and len(runs) == 1:
@@ -588,13 +607,16 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 stacklevel=3,
             )
         best = max(ok, key=lambda run: run.log_likelihood)
+        free_run_outputs = prediction.free_run(best.model, data.u)[1]  # (T, B, p) of the fitted model
+        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        if staged is not None:
+            best, free_run_outputs = self._keep_the_simulation(
+                staged, best, free_run_outputs, data, seeds[0], limit, device
+            )
         self._store_run(best, data, multi, warm, y_1d, init_lls)
         message = self._rejection_message(best)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
-        free_run_outputs = prediction.free_run(best.model, data.u)[1]  # (T, B, p) of the fitted model
-        if staged is not None:
-            self._compare_with_first_stage(staged, free_run_outputs, data)
         message = _noise_absorbing_message(self.dof_, self.outlier_weights_)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
@@ -635,10 +657,32 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         return self
 
+    def _runs_first_stage(self, start: StateSpaceModel) -> bool:
+        """Whether the first stage runs from ``start`` (``first_stage`` and, for ``"auto"``, the model)."""
+        if self.first_stage == "auto":  # a start for EM: none needed without EM (n_iter=0 evaluates a model)
+            return self.n_iter > 0 and first_stage_applies(start)
+        return self.first_stage == "simulation"
+
     def _first_stage(self, base: StateSpaceModel, data: SequenceBatch) -> StateSpaceModel:
         """The start after the robust simulation-error fit (``first_stage_`` says what it did)."""
+        given = _copy_model(base)
         report = simulation_error_fit(base, data, segment_length=FIRST_STAGE_WINDOW)
         self.first_stage_ = report
+        if report.accepted:
+            starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
+            staged = replace(base, x0_mean=starts.mean(0))
+            outputs = prediction.free_run(staged, data.u)[1]
+            yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+            report.explained = float(robust_r2_score(yt, torch.cat(data.unpad(outputs)).cpu().numpy()))
+            if self.first_stage == "auto" and not report.explained >= SIMULATION_R2_FLOOR:
+                # the process noise dominates y: a simulation-error fit is no guide to the parameters
+                # (the paper's example: robust R² 0.47-0.65 at the true values, and the first stage
+                # can land in a wrong basin), so EM starts from the given values
+                report.accepted = False
+                report.first_states = None
+                return given
+        if not report.accepted and self.first_stage == "auto":  # the given start is as good: no news
+            return given
         if not report.accepted:
             warnings.warn(
                 "the first stage (robust simulation-error fit) did not improve the start; EM starts "
@@ -650,25 +694,55 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
         return replace(base, x0_mean=starts.mean(0))
 
-    def _compare_with_first_stage(self, staged: StateSpaceModel, fitted_outputs: torch.Tensor, data) -> None:
-        """Record, and report when worse, the free run of the EM fit against the first stage's."""
-        yt = torch.cat(data.unpad(data.y)).cpu().numpy()
-        rmse = []
-        for outputs in (prediction.free_run(staged, data.u)[1], fitted_outputs):
-            y_hat = torch.cat(data.unpad(outputs)).cpu().numpy()
-            err = (yt - y_hat)[np.isfinite(yt)]
-            rmse.append(float(robust_scale(err, axis=None, center=0.0)) if err.size else math.nan)
-        self.first_stage_.free_run_scale_before_em = rmse[0]
-        self.first_stage_.free_run_scale_after_em = rmse[1]
-        if np.isfinite(rmse[1]) and rmse[1] > 1.1 * rmse[0]:
+    def _keep_the_simulation(
+        self, staged: StateSpaceModel, best: EMResult, free_run_outputs: torch.Tensor, data, seed, limit,
+        device,
+    ) -> tuple[EMResult, torch.Tensor]:
+        """Compare the EM fit's free run with the first stage's; under ``fit_Rw="auto"``, when EM
+        made it more than 10 % worse, run EM again from the first stage with the process noise held
+        small and keep the run that simulates better.  Returns the kept run and its free-run outputs."""
+        before = _free_run_scale(prediction.free_run(staged, data.u)[1], data)
+        after = _free_run_scale(free_run_outputs, data)
+        self.first_stage_.free_run_scale_before_em = before
+        self.first_stage_.free_run_scale_after_em = after
+        if not (np.isfinite(after) and after > SIMULATION_TOLERANCE * before):
+            return best, free_run_outputs
+        said = (
+            f"EM made the model simulate worse than its first stage did (robust scale of the training "
+            f"free-run errors {after:.4g} after EM, {before:.4g} after the first stage): the process noise "
+            "is carrying what f should simulate"
+        )
+        if self.fit_Rw != "auto" or not self.fit_Rw_:
             warnings.warn(
-                f"EM made the model simulate worse than its first stage did (robust scale of the "
-                f"training free-run errors {rmse[1]:.4g} after EM, {rmse[0]:.4g} after the first stage): "
-                "the process noise is carrying what f should simulate. For a simulation model hold it "
-                "(fit_Rw=False with a small Rw_init), or keep the first stage's parameters",
+                f"{said}. For a simulation model hold it (fit_Rw=False with a small Rw_init, or "
+                "fit_Rw='auto'), or keep the first stage's parameters",
                 RuntimeWarning,
                 stacklevel=4,
             )
+            return best, free_run_outputs
+        Rw = held_process_noise(staged, data)
+        held = _restart(self, replace(staged, Rw=Rw), data, 0, seed, limit, device, True, fit_Rw=False)
+        outputs = prediction.free_run(held.model, data.u)[1] if held.estep is not None else None
+        scale = _free_run_scale(outputs, data) if outputs is not None else math.nan
+        if held.error is not None or not np.isfinite(scale) or scale >= after:
+            warnings.warn(
+                f"{said}; EM again from the first stage with the process noise held did not simulate "
+                f"better ({scale:.4g}), so the fit keeps the estimated process noise",
+                RuntimeWarning,
+                stacklevel=4,
+            )
+            return best, free_run_outputs
+        warnings.warn(
+            f"{said}. So EM ran again from the first stage with the process noise held at "
+            f"{np.array2string(torch.diagonal(Rw).cpu().numpy(), precision=3)} (diagonal; fit_Rw='auto'), "
+            f"which simulates with a scale of {scale:.4g}: that fit is kept (fit_Rw_ is False). Pass "
+            "fit_Rw=True to keep the estimated process noise",
+            UserWarning,
+            stacklevel=4,
+        )
+        self.fit_Rw_ = False
+        self.first_stage_.free_run_scale_after_em = scale
+        return held, outputs
 
     def _rejection_message(self, run: EMResult) -> str | None:
         """Words for the M-step updates that were undone in ``run`` (``None`` if none were)."""
@@ -752,13 +826,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             with limited_threads(self.n_threads):
                 est = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
-                    model, data, est, fit_Rw=bool(self.fit_Rw), fit_Rv=bool(self.fit_Rv),
+                    model, data, est, fit_Rw=self._fitted_Rw(), fit_Rv=bool(self.fit_Rv),
                     fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
         for message in self._uncertainty.warnings() if warn else ():
             warnings.warn(message, RuntimeWarning, stacklevel=3)
         return self._uncertainty
+
+    def _fitted_Rw(self) -> bool:
+        """Whether the fit estimated the process noise (``fit_Rw_``; fits pickled before it: ``fit_Rw``)."""
+        return bool(self.__dict__.get("fit_Rw_", self.fit_Rw))
 
     @property
     def standard_errors_(self) -> dict:
@@ -1274,7 +1352,7 @@ def _fit_chunk(
                 est_b.random_state = int(estimator.random_state) + b
             estimators.append(est_b)
             start = est_b._initial_model(data_b, device)
-            if estimator.first_stage == "simulation":  # per data set, before the batched EM
+            if est_b._runs_first_stage(start):  # per data set, before the batched EM
                 start = est_b._first_stage(start, data_b)
             models.append(start)
         all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
@@ -1336,9 +1414,11 @@ def _restart(
     limit: float,
     device: torch.device,
     progress: bool,
+    fit_Rw: bool | None = None,
 ) -> EMResult:
     """EM run ``r`` of :meth:`RobustNSSMEstimator.fit` (here or on a worker): run 0 from ``base``,
-    the others from a jittered copy, all randomness from ``seed``."""
+    the others from a jittered copy, all randomness from ``seed`` (``fit_Rw`` overrides the
+    estimator's)."""
     n_runs = estimator.n_init
     with limited_threads(estimator.n_threads):
         rs = np.random.RandomState(seed)
@@ -1351,7 +1431,7 @@ def _restart(
         else:
             start = _stable_jitter(base, estimator.init_jitter, rs, data, limit)
         desc = "robust EM" if n_runs == 1 else f"robust EM (run {r + 1}/{n_runs})"
-        options = estimator._em_options(desc)
+        options = estimator._em_options(desc, fit_Rw=fit_Rw)
         if not progress:
             options.progress = None
         return run_em([start], data, options, generator)[0]
@@ -1372,6 +1452,21 @@ CAUCHY_TUNING = 2.385
 
 #: Window of the first stage's multiple shooting (samples).
 FIRST_STAGE_WINDOW = 50
+
+#: ``first_stage="auto"`` keeps the first stage only when its noise-free simulation explains at
+#: least this share of ``y`` (robust R²): a simulation model.  Below it the process noise dominates.
+SIMULATION_R2_FLOOR = 0.5
+
+#: How much worse than the first stage's (robust scale of the training free-run errors) EM may
+#: leave the simulation before ``fit_Rw="auto"`` holds the process noise.
+SIMULATION_TOLERANCE = 1.1
+
+
+def _free_run_scale(outputs: torch.Tensor, data: SequenceBatch) -> float:
+    """Robust scale (1.4826 MAD about 0) of the free run's output errors on the observed samples."""
+    yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+    err = (yt - torch.cat(data.unpad(outputs)).cpu().numpy())[np.isfinite(yt)]
+    return float(robust_scale(err, axis=None, center=0.0)) if err.size else math.nan
 
 
 def _first_windows(data: SequenceBatch, window: int) -> list[int]:

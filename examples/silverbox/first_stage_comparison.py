@@ -7,10 +7,13 @@ multisine part (with 5 % injected outliers, and clean) and prints the arrow RMSE
 * the equation-error start (the study's initial values),
 * the robust simulation-error fit alone (``first_stage="simulation"`` with ``n_iter=0``): the
   output-error baseline a user would try first, here with a Cauchy loss,
-* default EM from the equation-error start,
-* EM after the first stage,
+* EM from the equation-error start (no first stage, free process noise: the defaults before
+  2026-11-24),
+* EM after the first stage with a free process noise,
 * EM after the first stage with the process noise held small (``fit_Rw=False``,
-  ``Rw_init=1e-6``, normalised units): the setting for a simulation model.
+  ``Rw_init=1e-6``, normalised units): the setting for a simulation model,
+* EM with the defaults (``first_stage="auto"``, ``fit_Rw="auto"``: the first stage, then EM with
+  a free process noise, run again with it held if that made the simulation worse).
 """
 
 from __future__ import annotations
@@ -31,13 +34,15 @@ from silverbox.study import (
 from torch_nssm import RobustNSSMEstimator
 
 SETTINGS = {
-    "equation-error start": dict(n_iter=0),
+    "equation-error start": dict(n_iter=0, first_stage=None),
     "robust simulation-error fit (first stage alone)": dict(n_iter=0, first_stage="simulation"),
-    "EM (default)": dict(),
-    "EM after the first stage": dict(first_stage="simulation"),
+    "EM from the equation-error start (no first stage, Rw free)": dict(first_stage=None, fit_Rw=True),
+    "EM after the first stage, Rw free": dict(first_stage="simulation", fit_Rw=True),
     "EM after the first stage, Rw held at 1e-6": dict(
         first_stage="simulation", fit_Rw=False, Rw_init=[1e-6, 1e-6]
     ),
+    # what a user gets without options: first_stage="auto" and fit_Rw="auto"
+    "EM, defaults": dict(),
 }
 
 

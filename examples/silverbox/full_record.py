@@ -33,12 +33,14 @@ SETTINGS = {
     "robust simulation-error fit (first stage alone)": dict(first_stage="simulation", n_iter=0),
     "EM, Gaussian noise (after the first stage, Rw held)": dict(noise="gaussian", **HELD),
     "EM, Student-t noise (after the first stage, Rw held)": dict(noise="student-t", **HELD),
+    # the defaults (first_stage="auto", fit_Rw="auto"), with the long-record E-step
+    "EM, Student-t noise, defaults": dict(segment_length=1000, segment_overlap=100),
     # without the first stage, from the equation-error start, Rw free: what EM alone does
     "EM, Gaussian noise (equation-error start, Rw free)": dict(
-        noise="gaussian", first_stage=None, segment_length=1000, segment_overlap=100
+        noise="gaussian", first_stage=None, fit_Rw=True, segment_length=1000, segment_overlap=100
     ),
     "EM, Student-t noise (equation-error start, Rw free)": dict(
-        noise="student-t", first_stage=None, segment_length=1000, segment_overlap=100
+        noise="student-t", first_stage=None, fit_Rw=True, segment_length=1000, segment_overlap=100
     ),
 }
 

@@ -218,7 +218,7 @@ def test_em_after_the_first_stage_keeps_the_simulation_only_with_the_process_noi
 
     data = prepare_silverbox(n_train=3000, outlier_fraction=0.05, random_state=0)
     y_arrow_mv = data.to_mv(data.y_arrow[:, 0])
-    free = estimator(data, first_stage="simulation", n_iter=8, average_last=0)
+    free = estimator(data, first_stage="simulation", fit_Rw=True, n_iter=8, average_last=0)
     with pytest.warns(RuntimeWarning, match="EM made the model simulate worse than its first stage"):
         free.fit(data.u_train, data.y_train)
     held = estimator(
@@ -232,3 +232,11 @@ def test_em_after_the_first_stage_keeps_the_simulation_only_with_the_process_noi
     rmse_held = arrow_rmse_mv(simulate_arrow(held, data), y_arrow_mv)["full"]
     assert rmse_held < 1.3 < rmse_free  # measured: 1.17 and 1.87 mV after 15 iterations
     assert held.first_stage_.free_run_scale_after_em <= 1.1 * held.first_stage_.free_run_scale_before_em
+    # the defaults (first_stage="auto", fit_Rw="auto") see the free process noise spoil the
+    # simulation, run EM again with it held and keep that fit, and say so
+    default = estimator(data, n_iter=8, average_last=0)
+    with pytest.warns(UserWarning, match="EM ran again from the first stage with the process noise held"):
+        default.fit(data.u_train, data.y_train)
+    assert default.first_stage_.accepted and default.fit_Rw_ is False and free.fit_Rw_ is True
+    assert default.first_stage_.free_run_scale_after_em <= 1.1 * default.first_stage_.free_run_scale_before_em
+    assert arrow_rmse_mv(simulate_arrow(default, data), y_arrow_mv)["full"] < 1.3

@@ -47,19 +47,25 @@ def test_a_first_stage_that_cannot_improve_is_not_kept():
 
 def test_first_stage_moves_em_out_of_the_wrong_basin():
     """y scaled by 0.1 from a = b = c = 0.5: plain EM ends at a ~ 1, b ~ 0 (log-likelihood ~200
-    lower); with first_stage="simulation" one run reaches the right basin."""
+    lower); with first_stage="simulation" one run reaches the right basin, and so does the default
+    ("auto": the first stage's simulation explains enough of y to be kept)."""
     d = make_paper_example(n_samples=300, outlier_fraction=0.1, random_state=0)
     y = 0.1 * np.asarray(d.y)
     kw = dict(x0_mean=[0.0], n_particles=100, n_iter=30, random_state=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        plain = RobustNSSMEstimator(PaperTransition(0.5, 0.5), PaperObservation(0.5), **kw).fit(d.u, y)
+        plain = RobustNSSMEstimator(
+            PaperTransition(0.5, 0.5), PaperObservation(0.5), first_stage=None, **kw
+        ).fit(d.u, y)
         staged = RobustNSSMEstimator(
             PaperTransition(0.5, 0.5), PaperObservation(0.5), first_stage="simulation", **kw
         ).fit(d.u, y)
+        default = RobustNSSMEstimator(PaperTransition(0.5, 0.5), PaperObservation(0.5), **kw).fit(d.u, y)
     assert staged.first_stage_.accepted and staged.first_stage_.rmse_after < staged.first_stage_.rmse_before
     assert staged.f_.b.item() > 0.8 and abs(staged.g_.c.item() - 0.1) < 0.02
     assert staged.log_likelihood_ > plain.log_likelihood_ + 50.0
+    assert default.first_stage_.accepted and default.first_stage_.explained >= 0.5
+    assert default.log_likelihood_ == pytest.approx(staged.log_likelihood_)
     bad = RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0], first_stage="ls")
     with pytest.raises(ValueError, match="first_stage"):
         bad.fit(d.u, y)

@@ -36,7 +36,8 @@ def one_thread():
 
 
 def paper_estimator(**kw) -> RobustNSSMEstimator:
-    params = dict(x0_mean=[0.0], n_particles=50, n_iter=6, tol=0.0, random_state=0)
+    """EM from the given values (no first stage): these tests are about EM's own mechanics."""
+    params = dict(x0_mean=[0.0], n_particles=50, n_iter=6, tol=0.0, random_state=0, first_stage=None)
     params.update(kw)
     return RobustNSSMEstimator(PaperTransition(0.5, 0.5), PaperObservation(0.5), **params)
 

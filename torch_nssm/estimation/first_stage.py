@@ -22,7 +22,7 @@ from .._stats import MAD_TO_STD
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.prediction import free_run
 
-__all__ = ["FirstStageReport", "simulation_error_fit"]
+__all__ = ["FirstStageReport", "first_stage_applies", "held_process_noise", "simulation_error_fit"]
 
 
 @dataclass
@@ -45,6 +45,9 @@ class FirstStageReport:
     free_run_scale_before_em, free_run_scale_after_em : float
         Set by the estimator: the robust scale (1.4826 MAD about 0) of the training record's
         free-run output errors of the first stage's model and of the EM fit.
+    explained : float
+        Set by the estimator: robust R² of the first stage's free run against ``y``
+        (``first_stage="auto"`` keeps the result only when it is at least 0.5).
     """
 
     rmse_before: float
@@ -56,6 +59,43 @@ class FirstStageReport:
     first_states: Tensor | None = None
     free_run_scale_before_em: float = math.nan
     free_run_scale_after_em: float = math.nan
+    explained: float = math.nan
+
+
+#: Layers that mark a network: ``first_stage="auto"`` leaves models holding them to
+#: :func:`torch_nssm.warm_start_estimator` (a simulation-error fit of an untrained network from a
+#: random start is a training problem of its own, not a quick first stage).
+NETWORK_LAYERS: tuple[type, ...] = (
+    torch.nn.Linear,
+    torch.nn.Bilinear,
+    torch.nn.RNNBase,
+    torch.nn.modules.conv._ConvNd,
+)
+
+
+def first_stage_applies(model: StateSpaceModel) -> bool:
+    """Whether ``first_stage="auto"`` runs the first stage for ``model``.
+
+    It does for physical and grey-box models: ``f`` or ``g`` has free parameters and neither holds a
+    network layer (:data:`NETWORK_LAYERS`).
+    """
+    modules = (model.f, model.g)
+    if not any(p.requires_grad for m in modules for p in m.parameters()):
+        return False
+    return not any(isinstance(sub, NETWORK_LAYERS) for m in modules for sub in m.modules())
+
+
+def held_process_noise(model: StateSpaceModel, data: SequenceBatch, relative: float = 1e-6) -> Tensor:
+    """A small process-noise covariance for a simulation model: ``relative`` times the variance of
+    each state along ``model``'s noise-free simulation of ``data`` (diagonal), floored at
+    ``relative`` times the largest of them (and at ``1e-300``) so that no state is noise-free."""
+    with torch.no_grad():
+        states, _ = free_run(model, data.u)  # (T, B, nx)
+    x = torch.cat(data.unpad(states))  # (n, nx)
+    var = x.var(0) if x.shape[0] > 1 else torch.ones_like(x[0])
+    var = torch.where(torch.isfinite(var), var, torch.ones_like(var))
+    floor = torch.clamp(var.max() * relative, min=1e-300)
+    return torch.diag(torch.clamp(relative * var, min=floor))
 
 
 def _window_starts(data: SequenceBatch, segment_length: int | None) -> list[tuple[int, int, int]]:

@@ -41,7 +41,8 @@ def manipulator_estimator(data, **kwargs) -> RobustNSSMEstimator:
     """The estimator of the manipulator experiment for one record, from ``theta1 = theta2 = 0.8``.
 
     ``Rw_init`` is the generator's process-noise covariance, ``Rv_init = 1e-3 I``, the prior of
-    the first state has the generator's mean and 10 times its covariance, ``tol = 0``.
+    the first state has the generator's mean and 10 times its covariance, ``tol = 0``; the
+    paper's algorithm (no first stage, ``fit_Rw=True``).
 
     Parameters
     ----------
@@ -63,6 +64,8 @@ def manipulator_estimator(data, **kwargs) -> RobustNSSMEstimator:
         Rw_init=np.diag(Rw.reshape(-1)[:4]) if Rw.ndim == 1 else Rw,
         Rv_init=np.eye(2) * 1e-3,
         tol=0.0,
+        first_stage=None,  # the paper's algorithm: EM from the paper's start (docs/design.md)
+        fit_Rw=True,
     )
     options.update(kwargs)
     return RobustNSSMEstimator(
