@@ -108,6 +108,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     average_last : int, default=0
         If > 1, the fitted parameters are the average of the last ``average_last`` iterates
         (Polyak-Ruppert); the final E-step runs at the averaged parameters.
+    acceleration : {None, "newton"}, default=None
+        ``"newton"``: after each M-step, move ``f``'s and ``g``'s free parameters by a Newton step
+        on the log-likelihood instead (the observed information by Louis' identity from the same
+        E-step, :mod:`torch_nssm.estimation.acceleration`), until a step falls within one standard
+        error; plain EM from there.  Fewer iterations where EM is slow (a small process noise);
+        each accelerated iteration costs about one more E-step.  ``history_["accelerated"]``
+        marks the iterates it produced.  Needs ``segment_length=None``.
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3
@@ -255,6 +262,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         n_particles: int = 200,
         n_particles_final: int | None = None,
         average_last: int = 0,
+        acceleration: str | None = None,
         n_iter: int = 100,
         tol: float = 1e-3,
         n_init: int = 1,
@@ -295,6 +303,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.n_particles = n_particles
         self.n_particles_final = n_particles_final
         self.average_last = average_last
+        self.acceleration = acceleration
         self.n_iter = n_iter
         self.tol = tol
         self.n_init = n_init
@@ -387,6 +396,13 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_choice(self.smoother, "smoother", sorted(SMOOTHERS))
         if self.first_stage is not None:
             V.check_choice(self.first_stage, "first_stage", ["auto", "simulation"])
+        if self.acceleration is not None:
+            V.check_choice(self.acceleration, "acceleration", ["newton"])
+            if self.segment_length is not None:
+                raise ValueError(
+                    "acceleration='newton' needs the exact E-step: set segment_length=None (the "
+                    "observed information is not computed from the windows of a segmented E-step)"
+                )
         if not (isinstance(self.fit_Rw, (bool, np.bool_)) or self.fit_Rw == "auto"):
             raise ValueError(f"fit_Rw must be True, False or 'auto', got {self.fit_Rw!r}")
         V.check_choice(self.resampling, "resampling", sorted(RESAMPLING_SCHEMES))
@@ -490,6 +506,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             tol=self.tol,
             n_particles_final=self.n_particles_final,
             average_last=self.average_last,
+            acceleration=self.acceleration,
             estep=EStepOptions(
                 n_particles=self.n_particles,
                 smoother=self.smoother,
@@ -1257,6 +1274,10 @@ def fit_independent(
         raise ValueError(
             "segment_length applies to fit (one model for all records); fit_independent runs each data "
             "set whole: set segment_length=None"
+        )
+    if estimator.acceleration is not None:
+        raise ValueError(
+            "acceleration applies to fit (one model); fit_independent runs plain EM: set acceleration=None"
         )
     if not V.is_sequence_list(y):
         raise ValueError("y must be a list of data sets (one array per data set)")

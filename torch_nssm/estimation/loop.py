@@ -21,6 +21,7 @@ import torch
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
 from ..inference.random import SequenceStreams
+from .acceleration import information_at, newton_step, newton_tolerance
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
@@ -47,6 +48,10 @@ class EMOptions:
         Grow the particle count geometrically from ``estep.n_particles`` to this at ``n_iter``.
     average_last : int
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
+    acceleration : {None, "newton"}
+        ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
+        information, until a step is within one standard error (:mod:`.acceleration`; single fits
+        with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
     progress : str or None
         Description of a progress bar (``None``: no bar).
@@ -56,6 +61,7 @@ class EMOptions:
     tol: float = 1e-3
     n_particles_final: int | None = None
     average_last: int = 0
+    acceleration: str | None = None
     estep: EStepOptions = field(default_factory=EStepOptions)
     mstep: MStepOptions = field(default_factory=MStepOptions)
     progress: str | None = None
@@ -109,10 +115,12 @@ class EMResult:
 
 def record(history: dict, model: StateSpaceModel, log_likelihood: float) -> None:
     """Append the model's parameters and the log-likelihood estimate to ``history``."""
-    for label in ("f", "g"):  # whether the M-step that led here undid that module's step
-        rejected = history[f"rejected.{label}"]
-        if len(rejected) < len(history["log_likelihood"]) + 1:
-            rejected.append(False)
+    for key in ("rejected.f", "rejected.g", "accelerated"):  # flags of the M-step that led here
+        if key == "accelerated" and key not in history:
+            continue
+        flags = history[key]
+        if len(flags) < len(history["log_likelihood"]) + 1:
+            flags.append(False)
     history["log_likelihood"].append(log_likelihood)
     for label, module in (("f", model.f), ("g", model.g)):
         for name, p in module.named_parameters():
@@ -218,6 +226,10 @@ def run_em(
 
     active = list(range(n_groups))
     snapshots: dict[int, tuple] = {}
+    accelerating = options.acceleration == "newton" and shared and options.estep.segment_length is None
+    previous_step = None  # the last Newton step taken
+    if accelerating:
+        histories[0]["accelerated"] = []
     bar = _progress_bar(options.n_iter, options.progress)
     try:
         try:
@@ -249,6 +261,13 @@ def run_em(
             else:
                 sel = torch.tensor(update, device=data.y.device)
                 sub_data, sub_est = batch.data.select(sel), est.select(sel)
+            at = None
+            if accelerating:  # the information at the current parameters, before the M-step moves them
+                try:
+                    at = information_at(models[0], sub_data, sub_est, generator)
+                except (RuntimeError, ValueError, NotImplementedError, torch.linalg.LinAlgError):
+                    at = None
+                accelerating = at is not None
             m_options = options.mstep
             if isinstance(generator, SequenceStreams):  # each data set's minibatches from its stream
                 solver = replace(m_options.solver, generator=generator.select(ids))
@@ -263,14 +282,40 @@ def run_em(
                     histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
                 models[g] = new
                 still.append(g)
+            em_step = None
+            if at is not None and still:
+                if any(report[label].rejected for report in result.reports for label in ("f", "g")):
+                    step = None
+                else:
+                    em_step = _snapshot(models[0])
+                    step = newton_step(at, models[0], previous_step)
+                    accelerating = not step.done
+                    previous_step = step.delta if step.taken else previous_step
+                histories[0]["accelerated"].append(bool(step is not None and step.taken))
             if still:
                 try:
                     batch = estep(still, it + 1)
+                    if em_step is not None and histories[0]["accelerated"][-1]:
+                        drop = lls[0][-1] - float(last[0][0].log_likelihood.sum())
+                        if drop > newton_tolerance(n_obs[0]):  # the Newton step lost likelihood: undo it
+                            models[0], accelerating = _restore(em_step), False
+                            histories[0]["accelerated"][-1] = False
+                            batch = estep(still, it + 1)
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
-                    for g in still:
-                        models[g] = _restore(snapshots[g])
-                        errors[g] = f"EM stopped at iteration {it + 1}: {exc}"
-                    still = []
+                    batch, failure = None, str(exc)
+                    if em_step is not None and histories[0]["accelerated"][-1]:
+                        # the Newton step failed where the EM step may not: take that, EM from here
+                        models[0], accelerating = _restore(em_step), False
+                        histories[0]["accelerated"][-1] = False
+                        try:
+                            batch = estep(still, it + 1)
+                        except (NumericalError, torch.linalg.LinAlgError) as again:
+                            failure = str(again)
+                    if batch is None:
+                        for g in still:
+                            models[g] = _restore(snapshots[g])
+                            errors[g] = f"EM stopped at iteration {it + 1}: {failure}"
+                        still = []
             for g in still:
                 n_done[g] += 1
             active = still
@@ -299,9 +344,9 @@ def run_em(
             batch_est, j = last[g]
             est = to_records(batch_est, models[g], data) if shared else batch_est.select(slice(j, j + 1))
         history = dict(histories[g])
-        for label in ("f", "g"):  # an interrupt or error can leave a flag without its iterate
-            key = f"rejected.{label}"
-            history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
+        for key in ("rejected.f", "rejected.g", "accelerated"):  # an interrupt or error can leave a
+            if key in history or key != "accelerated":  # flag without its iterate
+                history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
         results.append(EMResult(models[g], est, history, n_done[g], done[g], errors[g], interrupted))
     return results
 

@@ -1,0 +1,95 @@
+"""EM with Newton-type steps (``acceleration="newton"``, :mod:`torch_nssm.estimation.acceleration`)."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm.core.model import StateSpaceModel
+from torch_nssm.core.noise import get_noise_model
+from torch_nssm.datasets import make_manipulator, make_paper_example
+from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+from torch_nssm.estimation.acceleration import MAX_FACTOR, InformationAt, newton_step
+from torch_nssm.reproduce.manipulator_study import manipulator_estimator, manipulator_kalman_mle
+
+
+def _model(a: float, b: float, c: float) -> StateSpaceModel:
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    noise = get_noise_model("gaussian").initial(t([[0.1]]), 5.0)
+    f, g = PaperTransition(a, b), PaperObservation(c)
+    return StateSpaceModel(f, g, t([[0.1]]), noise, t([0.0]), t([[1.0]]))
+
+
+def _at(theta, info, complete) -> InformationAt:
+    return InformationAt(np.asarray(info, float), np.asarray(complete, float), np.asarray(theta, float), [])
+
+
+def test_newton_step_is_the_inverse_information_times_the_score():
+    """theta + I^-1 I_c (theta_EM - theta) for (a, b, c), and the safeguards."""
+    theta = np.array([0.5, 0.5, 0.5])
+    complete = np.diag([1e4, 5e3, 8e3]) + 500.0
+    info = 0.2 * complete + np.diag([10.0, 20.0, 30.0])  # about 80 % of the information missing
+    new = _model(0.52, 0.51, 0.49)  # the EM step
+    step = newton_step(_at(theta, info, complete), new)
+    want = theta + np.linalg.solve(info, complete @ (np.array([0.52, 0.51, 0.49]) - theta))
+    got = np.array([new.f.a.item(), new.f.b.item(), new.g.c.item()])
+    assert step.taken and not step.done
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert 1.0 < step.factor <= MAX_FACTOR
+    # an information that is not positive definite: the EM step stands
+    new = _model(0.52, 0.51, 0.49)
+    step = newton_step(_at(theta, -info, complete), new)
+    assert not step.taken and not step.done and new.f.a.item() == pytest.approx(0.52)
+    # a Newton step within one standard error ends the acceleration (EM step taken)
+    new = _model(0.5001, 0.5, 0.5)
+    step = newton_step(_at(theta, info, complete), new)
+    assert not step.taken and step.done and "standard error" in step.reason
+    # a step that points back against the previous one: the previous overshot
+    new = _model(0.52, 0.51, 0.49)
+    step = newton_step(_at(theta, info, complete), new, previous=-np.ones(3))
+    assert not step.taken and step.done and "reversed" in step.reason
+    # the step is capped at MAX_FACTOR times the EM step (in the I_c norm)
+    new = _model(0.52, 0.51, 0.49)
+    step = newton_step(_at(theta, 1e-3 * complete, complete), new)
+    assert step.taken and step.factor == pytest.approx(MAX_FACTOR)
+
+
+def test_newton_steps_bring_the_manipulator_closer_to_the_kalman_mle():
+    """Small process noise: plain EM creeps (measured after 8 iterations: theta 0.854, 0.855, i.e.
+    2.7 and 3.9 exact standard errors from the Kalman MLE 1.021, 1.050); with Newton steps the
+    fit gets closer at the same log-likelihood level (measured 0.872, 0.984)."""
+    data = make_manipulator(n_samples=200, outlier_fraction=0.05, random_state=0)
+    mle = manipulator_kalman_mle(data)
+    distance = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for acc in (None, "newton"):
+            est = manipulator_estimator(
+                data, n_particles=300, smoother="mcmc", n_iter=8, random_state=0, acceleration=acc
+            ).fit(data.u, data.y)
+            theta = np.array([est.f_.theta1.item(), est.f_.theta2.item()])
+            distance[acc] = np.abs(theta - mle["theta"]) / np.asarray(mle["se"])
+            if acc is not None:
+                flags = est.history_["accelerated"]
+                assert flags.shape == (9,) and flags.dtype == bool and not flags[0] and flags.any()
+            else:
+                assert "accelerated" not in est.history_
+    assert distance["newton"].max() < distance[None].max() - 1.0, distance
+
+
+def test_acceleration_arguments():
+    d = make_paper_example(n_samples=60, random_state=0)
+    kw = dict(x0_mean=[0.0], n_particles=20, n_iter=2, random_state=0)
+    with pytest.raises(ValueError, match="acceleration"):
+        RobustNSSMEstimator(PaperTransition(), PaperObservation(), acceleration="aitken", **kw).fit(d.u, d.y)
+    with pytest.raises(ValueError, match="acceleration='newton' needs the exact E-step"):
+        RobustNSSMEstimator(
+            PaperTransition(), PaperObservation(), acceleration="newton", segment_length=20, **kw
+        ).fit(d.u, d.y)
+    proto = RobustNSSMEstimator(PaperTransition(), PaperObservation(), acceleration="newton", **kw)
+    with pytest.raises(ValueError, match="acceleration applies to fit"):
+        fit_independent(proto, [d.u, d.u], [d.y, d.y])
