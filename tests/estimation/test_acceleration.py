@@ -51,7 +51,7 @@ def test_newton_step_is_the_inverse_information_times_the_score():
     # a step that points back against the previous one: the previous overshot
     new = _model(0.52, 0.51, 0.49)
     step = newton_step(_at(theta, info, complete), new, previous=-np.ones(3))
-    assert not step.taken and step.done and "reversed" in step.reason
+    assert not step.taken and not step.done and step.reason == "reversed"
     # the step is capped at MAX_FACTOR times the EM step (in the I_c norm)
     new = _model(0.52, 0.51, 0.49)
     step = newton_step(_at(theta, 1e-3 * complete, complete), new)

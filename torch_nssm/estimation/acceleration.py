@@ -16,9 +16,10 @@ definite far from the maximum.)
 Safeguards: the EM step where ``I`` is not positive definite; a step at most ``MAX_FACTOR`` times
 the EM step (in the ``I_c`` norm); a step after which the log-likelihood estimate falls by more
 than :func:`newton_tolerance` is undone (the EM step is taken) and ends the acceleration; and
-once a Newton step is within one standard error (``delta' I delta < 1``: the particle noise of
-the information would dominate), or points back against the previous one (that one overshot),
-the acceleration ends and the fit goes on with plain EM.
+a Newton step that points back against the previous one (that one overshot) is replaced by the EM
+step and halves the cap, and once a Newton step is within one standard error (``delta' I delta <
+1``: the particle noise of the information would dominate) or the cap falls below 2, the
+acceleration ends and the fit goes on with plain EM.
 """
 
 from __future__ import annotations
@@ -117,9 +118,15 @@ def information_at(model: StateSpaceModel, data: SequenceBatch, est: EStepOutput
     return InformationAt(unc.information, unc.complete_information, theta.astype(float), unc.excluded)
 
 
-def newton_step(at: InformationAt, new: StateSpaceModel, previous: np.ndarray | None = None) -> NewtonStep:
+def newton_step(
+    at: InformationAt,
+    new: StateSpaceModel,
+    previous: np.ndarray | None = None,
+    max_factor: float = MAX_FACTOR,
+) -> NewtonStep:
     """Replace the M-step's module parameters in ``new`` (in place) by the Newton step from the
-    parameters ``at`` describes (``previous``: the last Newton step taken); returns what was done."""
+    parameters ``at`` describes (``previous``: the last Newton step taken; ``max_factor``: the
+    cap of the step over the EM step); returns what was done."""
     params = _free(new, at.excluded)
     theta_em = np.concatenate([p.detach().cpu().numpy().reshape(-1) for p in params]).astype(float)
     if theta_em.shape != at.theta.shape:
@@ -135,14 +142,14 @@ def newton_step(at: InformationAt, new: StateSpaceModel, previous: np.ndarray | 
     if float(delta @ info @ delta) < 1.0:  # within one standard error: EM from here
         return NewtonStep(False, True, 1.0, "within one standard error")
     if previous is not None and previous.shape == delta.shape and float(delta @ complete @ previous) < 0:
-        # it points back: the last step overshot (the information's particle noise); EM from here
-        return NewtonStep(False, True, 1.0, "the step reversed the previous one")
+        # it points back: the last step overshot (the information's particle noise); the EM step
+        return NewtonStep(False, False, 1.0, "reversed")
     norm_em = float(np.sqrt(max(d @ complete @ d, 0.0)))
     norm = float(np.sqrt(max(delta @ complete @ delta, 0.0)))
     if not np.isfinite(norm) or norm_em == 0.0:
         return NewtonStep(False, False, 1.0, "no EM step to scale")
-    if norm > MAX_FACTOR * norm_em:
-        delta, norm = delta * (MAX_FACTOR * norm_em / norm), MAX_FACTOR * norm_em
+    if norm > max_factor * norm_em:
+        delta, norm = delta * (max_factor * norm_em / norm), max_factor * norm_em
     value, start = at.theta + delta, 0
     with torch.no_grad():
         for p in params:

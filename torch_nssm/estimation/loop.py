@@ -21,7 +21,7 @@ import torch
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
 from ..inference.random import SequenceStreams
-from .acceleration import information_at, newton_step, newton_tolerance
+from .acceleration import MAX_FACTOR, information_at, newton_step, newton_tolerance
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
@@ -227,7 +227,7 @@ def run_em(
     active = list(range(n_groups))
     snapshots: dict[int, tuple] = {}
     accelerating = options.acceleration == "newton" and shared and options.estep.segment_length is None
-    previous_step = None  # the last Newton step taken
+    previous_step, max_factor = None, MAX_FACTOR  # the last Newton step taken, the cap of the next
     if accelerating:
         histories[0]["accelerated"] = []
     bar = _progress_bar(options.n_iter, options.progress)
@@ -288,8 +288,10 @@ def run_em(
                     step = None
                 else:
                     em_step = _snapshot(models[0])
-                    step = newton_step(at, models[0], previous_step)
-                    accelerating = not step.done
+                    step = newton_step(at, models[0], previous_step, max_factor)
+                    if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
+                        max_factor /= 2.0
+                    accelerating = not step.done and max_factor >= 2.0
                     previous_step = step.delta if step.taken else previous_step
                 histories[0]["accelerated"].append(bool(step is not None and step.taken))
             if still:
