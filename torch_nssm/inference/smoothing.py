@@ -687,9 +687,9 @@ def backward_segments(
     if S > 53:
         raise ValueError(f"max_tries must be at most 53, got {max_tries}")
     # the tries come in rounds: S1 for every index, drawn for blocks of steps before the loop, then
-    # rounds of at most S1 for the indices none of the earlier ones accepted, drawn in the loop
-    # (with acceptance rates about 0.4-0.5 the first round leaves a tenth; a try costs ~100x less
-    # than an exact O(L) draw)
+    # rounds of twice as many as the last for the indices none of the earlier ones accepted, drawn
+    # in the loop (with acceptance rates about 0.4-0.5 the first round leaves a tenth; a try costs
+    # ~100x less than an exact O(L) draw)
     S1 = min(S, _FIRST_TRIES)
     S2 = S - S1
     bits = torch.pow(2.0, torch.arange(S - 1, -1, -1, dtype=torch.float64, device=device))  # exact in float64
@@ -731,9 +731,9 @@ def backward_segments(
             if b_idx.numel():
                 zf_i = zf[i].reshape(GB * L, nx)
                 xn = x_next[b_idx, m_idx]  # (P, nx)
-                left = S2
+                left, S_r = S2, S1
                 while left and b_idx.numel():  # further rounds of tries, for these indices only
-                    S_r = min(left, _FIRST_TRIES)
+                    S_r = min(left, 2 * S_r)  # doubling: the indices left accept less often
                     left -= S_r
                     P = b_idx.numel()
                     u = torch.rand(2, P, S_r, dtype=X.dtype, device=device, generator=generator)
@@ -756,7 +756,8 @@ def backward_segments(
 
 
 #: Rejection tries drawn for every index of :func:`backward_segments` before its loop; the rest of
-#: ``max_tries`` are drawn in the loop, in rounds of as many, for the indices not settled yet.
+#: ``max_tries`` are drawn in the loop, in rounds of twice as many each, for the indices not
+#: settled yet.
 _FIRST_TRIES = 4
 
 
