@@ -366,3 +366,27 @@ def test_backward_segments_follow_the_smoothing_distribution():
             assert float(((mean - xbar) / se).abs().max()) < 5.0, (tries, g)
     with pytest.raises(ValueError, match="log_weights"):
         backward_segments(model, data, est.filter, 5, [0], 10)
+
+
+def test_a_linear_in_parameters_module_whose_forward_differs_takes_the_general_path():
+    """A ``LinearInParameters`` subclass whose ``forward`` is not ``offset + Phi theta`` (here shifted)
+    gets the autograd Hessian and scores, not its features' closed forms: the same information as
+    with every module treated as general."""
+    from torch_nssm.datasets.paper import PaperObservation
+
+    class Shifted(PaperObservation):
+        def forward(self, x, u):
+            return super().forward(x, u) + 0.1
+
+    model, data, est = _paper_estep("student-t", 1, n=60)
+    model = type(model)(model.f, Shifted(1.0), model.Rw, model.noise, model.x0_mean, model.x0_cov)
+    gen = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    unc = U.observed_information(model, data, est, n_trajectories=20, generator=gen())
+    original = U._linear_in_parameters
+    try:
+        U._linear_in_parameters = lambda module: False
+        general = U.observed_information(model, data, est, n_trajectories=20, generator=gen())
+    finally:
+        U._linear_in_parameters = original
+    np.testing.assert_allclose(unc.complete_information, general.complete_information, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(unc.score_variance, general.score_variance, rtol=1e-9, atol=1e-8)

@@ -10,10 +10,14 @@ At any parameter value ``theta`` (docs/uncertainty.md)::
   parameter-free scatter, the observation term from the rows ``(x_k^l, u_k) -> y_k`` with the
   smoothing weights ``W_{k|N}^l``.  For Student-t noise the observation term is the marginal t
   density of ``y_k`` given ``x_k`` (the latent scales integrated out).
-* The second term needs the *joint* smoothing distribution: ``M`` trajectories are drawn from the
-  particle approximation by backward simulation
-  (:func:`~torch_nssm.inference.smoothing.backward_trajectories`) and the complete-data score of
-  each (autograd, per trajectory) gives its sample covariance.
+  Gaussian parts whose mean is linear in its parameters are written with the rows' weighted
+  moments, the Student-t observation with closed-form terms besides; autograd over the rows
+  otherwise.
+* The second term needs the *joint* smoothing distribution, but only over a lag window of a few
+  steps: ``M`` draws of pieces of trajectories from the particle approximation
+  (:func:`~torch_nssm.inference.smoothing.backward_segments`), the complete-data score of each step
+  in closed form given the residuals, and their covariances summed up to the window
+  (:func:`_windowed_covariance`).
 
 Both are computed on a working scale where normal approximations are better: module parameters as
 they are, full covariances (``Rw``, ``Rv``) by their log-Cholesky factor, diagonal variances and
@@ -456,7 +460,10 @@ def observed_information(
     t_hessian = None
     if moments["observation"] is None and ll.family == "student-t" and not ll.gaussian and all_observed:
         if _linear_in_parameters(model.g) or not _module_columns(ll, "g")[0]:
-            t_hessian = _student_t_observation_hessian(ll, w0, obs)
+            try:
+                t_hessian = _student_t_observation_hessian(ll, w0, obs)
+            except _NotLinear:  # its forward is not offset + Phi theta: autograd below
+                t_hessian = None
 
     hessian = torch.zeros(d, d, dtype=dtype)
     owner = np.concatenate([[b.key.startswith("f.") or b.key == "Rw"] * b.n_working for b in blocks] or [[]])
@@ -995,11 +1002,6 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
         return _gaussian_term(moments, w, ll.unpack(w).get("Rv", ll.model.noise.Rv), None, 0.0)
 
     return H + torch.autograd.functional.hessian(weighted, w0)
-
-
-def _chunks(n: int, size: int):
-    for start in range(0, n, size):
-        yield slice(start, min(start + size, n))
 
 
 def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observed: bool) -> Tensor:
