@@ -7,14 +7,26 @@ E-step (filter + FFBSm) at the same particle count, measured alternately on one 
 ratio is what to read on a busy machine).  The first call of ``torch.func`` in a process costs
 about 1.5 s of imports more, not counted.
 
+``--baseline REV`` also times the implementation of a git revision (its
+``estimation/uncertainty.py`` and ``inference/smoothing.py``, loaded from ``git show`` into a
+temporary package beside this checkout's) in the same loop, for an old-against-new comparison on
+the same machine load:
+
     python benchmarks/uncertainty_cost.py
+    python benchmarks/uncertainty_cost.py --baseline 3a089ef
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
+import re
+import subprocess
+import sys
+import tempfile
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -66,8 +78,30 @@ def _linear(L: int) -> RobustNSSMEstimator:
     return est.fit(u, y)
 
 
-def measure(build, L: int, repeats: int = 5) -> tuple[float, float]:
-    """Median seconds of the information and of one E-step."""
+def _baseline(rev: str):
+    """``observed_information`` of git revision ``rev``: its uncertainty and smoothing modules,
+    their relative imports made absolute (the rest of the package is this checkout's)."""
+    root = Path(__file__).resolve().parents[1]
+    tmp = Path(tempfile.mkdtemp(prefix="uncertainty_baseline_"))
+    sources = {
+        "baseline_smoothing": "torch_nssm/inference/smoothing.py",
+        "baseline_uncertainty": "torch_nssm/estimation/uncertainty.py",
+    }
+    for name, path in sources.items():
+        text = subprocess.run(
+            ["git", "show", f"{rev}:{path}"], cwd=root, check=True, capture_output=True, text=True
+        ).stdout
+        package = "torch_nssm.inference" if "inference" in path else "torch_nssm.estimation"
+        text = text.replace("from ..inference.smoothing import", "from baseline_smoothing import")
+        text = re.sub(r"from \.\.(\w)", r"from torch_nssm.\1", text)
+        text = re.sub(r"from \.(\w)", rf"from {package}.\1", text)
+        (tmp / f"{name}.py").write_text(text)
+    sys.path.insert(0, str(tmp))
+    return importlib.import_module("baseline_uncertainty").observed_information
+
+
+def measure(build, L: int, repeats: int = 5, baseline=None) -> tuple[float, float, float | None]:
+    """Median seconds of the information, of one E-step and of the baseline's information."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est = build(L)
@@ -75,15 +109,21 @@ def measure(build, L: int, repeats: int = 5) -> tuple[float, float]:
     options = est._em_options().estep
     estep = e_step(model, data, options, torch.Generator().manual_seed(0))  # the fit's kind of E-step
     observed_information(model, data, estep)  # imports, caches
-    info, step = [], []
+    if baseline is not None:
+        baseline(model, data, estep)
+    info, step, old = [], [], []
     for r in range(repeats):
+        if baseline is not None:
+            t = time.perf_counter()
+            baseline(model, data, estep, generator=torch.Generator().manual_seed(r))
+            old.append(time.perf_counter() - t)
         t = time.perf_counter()
         observed_information(model, data, estep, generator=torch.Generator().manual_seed(r))
         info.append(time.perf_counter() - t)
         t = time.perf_counter()
         e_step(model, data, options, torch.Generator().manual_seed(r))
         step.append(time.perf_counter() - t)
-    return float(np.median(info)), float(np.median(step))
+    return float(np.median(info)), float(np.median(step)), float(np.median(old)) if old else None
 
 
 def main() -> None:
@@ -92,13 +132,19 @@ def main() -> None:
     )
     parser.add_argument("--particles", type=int, nargs="+", default=[200, 500, 1000])
     parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--baseline", help="a git revision whose information to time alongside")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print(f"{'model':16s} {'L':>5s} {'information':>12s} {'E-step':>8s} {'ratio':>6s}")
+    baseline = _baseline(args.baseline) if args.baseline else None
+    head = f"{'model':16s} {'L':>5s} {'information':>12s} {'E-step':>8s} {'ratio':>6s}"
+    print(head + (f" {'baseline':>10s} {'ratio':>6s}" if baseline else ""))
     for name, build in (("paper 4.1", _paper), ("linear 2-state", _linear)):
         for L in args.particles:
-            info, step = measure(build, L, args.repeats)
-            print(f"{name:16s} {L:5d} {info:10.3f} s {step:6.3f} s {info / step:6.2f}")
+            info, step, old = measure(build, L, args.repeats, baseline)
+            line = f"{name:16s} {L:5d} {info:10.3f} s {step:6.3f} s {info / step:6.2f}"
+            if old is not None:
+                line += f" {old:8.3f} s {old / step:6.2f}"
+            print(line, flush=True)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,7 @@ from torch_nssm.blocks.linear import LinearObservation, LinearTransition
 from torch_nssm.core.model import SequenceBatch
 from torch_nssm.estimation import uncertainty as U
 from torch_nssm.estimation.mstep import transition_regression
-from torch_nssm.inference.smoothing import backward_trajectories
+from torch_nssm.inference.smoothing import backward_segments, backward_trajectories
 
 A = np.array([[0.8, 0.2], [-0.3, 0.6]])
 B = np.array([[1.0], [0.5]])
@@ -148,16 +148,19 @@ def test_without_the_lag_window_the_score_variance_is_biased(linear_gaussian_fit
     _, cov_exact, unc = exact
     model, data = est._uncertainty_source
     e = est._e_step(model, data, est._generator(data.y.device))
+    X = e.filter.particles
     with limited_threads(1):
         blocks, _ = U._blocks(model, True, True, True)
         ll = U._LogLikelihood(model, blocks)
         w0 = torch.cat([b.to_working() for b in blocks])
+        # the information's own pieces of trajectories (the same seed: the same draws)
+        gen = torch.Generator().manual_seed(0)
+        V_window, lag, _ = U._score_variance(ll, w0, model, data, e, 500, True, gen)
+        # whole trajectories for the plain covariance
         Js = backward_trajectories(model, data, e.filter, 500, generator=torch.Generator().manual_seed(0))
-        X = e.filter.particles
-        paths = torch.gather(X, 2, Js.unsqueeze(-1).expand(*Js.shape, 2)).permute(2, 0, 1, 3)
-        s = U._score_contributions(ll, w0, paths, data, True)
-    V_window, lag = U._windowed_covariance(s)
-    np.testing.assert_allclose(V_window, unc.score_variance)  # the same seed: the same trajectories
+        rows = U._piece_rows(X, data, Js.unsqueeze(0), [0])
+        s = U._row_scores(ll, w0, rows, True).view(*Js.shape, -1).permute(2, 0, 1, 3).numpy()  # (M, T, B, d)
+    np.testing.assert_allclose(V_window, unc.score_variance)
     assert 1 <= lag < 50 and lag == unc.lag_window
     V_plain = np.cov(s.sum((1, 2)), rowvar=False)
     se_exact = np.sqrt(np.diag(cov_exact))
@@ -228,3 +231,162 @@ def test_backward_trajectories_follow_the_smoothing_marginals():
     seen = counts[:-1] > 500
     xbar = m[seen] / counts[:-1][seen]
     np.testing.assert_allclose(xbar.numpy(), est.smoother.next_mean[:, 0, :, 0][seen].numpy(), atol=0.05)
+
+
+def _paper_estep(noise: str = "student-t", p: int = 1, n: int = 80, missing: bool = False, seed: int = 3):
+    """A small model of the paper's kind (``p`` outputs) and one E-step of simulated data."""
+    from torch_nssm.blocks.linear import LinearObservation
+    from torch_nssm.core.model import StateSpaceModel
+    from torch_nssm.core.noise import get_noise_model
+    from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+    from torch_nssm.estimation.estep import EStepOptions, e_step
+
+    rng = np.random.default_rng(seed)
+    u = torch.as_tensor(rng.standard_normal((n, 1)))
+    x = np.cumsum(0.3 * rng.standard_normal(n))
+    y = np.cos(x)[:, None] * np.linspace(1.0, 0.5, p) + 0.3 * rng.standard_t(3, (n, p))
+    if missing:
+        y[rng.random((n, p)) < 0.2] = np.nan
+    data = SequenceBatch.from_sequences([u], [torch.as_tensor(y)])
+    t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
+    g = PaperObservation(1.0) if p == 1 else LinearObservation(1, 1, p, C=np.linspace(1.0, 0.5, p)[:, None])
+    Rv = t(np.diag(np.full(p, 0.1)) + 0.02 * (noise != "student-t-per-output") * (1 - np.eye(p)))
+    model = StateSpaceModel(
+        PaperTransition(0.9, 1.0), g, t([[0.1]]), get_noise_model(noise).initial(Rv, 4.0), t([0.0]),
+        t([[1.0]]),
+    )
+    est = e_step(model, data, EStepOptions(n_particles=50), torch.Generator().manual_seed(0))
+    return model, data, est
+
+
+@pytest.mark.parametrize(
+    "noise,p,missing",
+    [
+        ("gaussian", 2, False),
+        ("student-t", 1, False),
+        ("student-t", 2, False),
+        ("student-t-per-output", 2, True),
+    ],
+)
+def test_closed_form_scores_and_hessian_match_autograd(noise, p, missing):
+    """The per-step scores in closed form equal reverse-mode autograd of each row's log-density, and
+    the expected Hessian from the moments (Gaussian parts) and the closed-form Student-t terms equals
+    the autograd Hessian of ``Q`` (forced by treating the modules as general)."""
+    model, data, est = _paper_estep(noise, p, missing=missing)
+    all_observed = bool(data.obs_mask[data.obs_mask.any(-1)].all())
+    blocks, _ = U._blocks(model, True, True, True)
+    ll = U._LogLikelihood(model, blocks)
+    w0 = torch.cat([b.to_working() for b in blocks])
+    T = data.y.shape[0]
+    starts, length, _ = U._pieces(T, 6, 24)
+    Js = backward_segments(
+        model, data, est.filter, 7, starts, length, log_weights=est.smoother.log_weights,
+        generator=torch.Generator().manual_seed(0),
+    )
+    rows = U._piece_rows(est.filter.particles, data, Js, starts)
+    fast = U._closed_form_scores(ll, w0, rows)
+    reference = U._row_scores_autograd(ll, w0, rows, all_observed)
+    np.testing.assert_allclose(fast.numpy(), reference.numpy(), rtol=1e-9, atol=1e-9)
+
+    unc = U.observed_information(
+        model, data, est, n_trajectories=20, generator=torch.Generator().manual_seed(0)
+    )
+    original = U._linear_in_parameters
+    try:
+        U._linear_in_parameters = lambda module: False  # the general path: autograd Hessians
+        general = U.observed_information(
+            model, data, est, n_trajectories=20, generator=torch.Generator().manual_seed(0)
+        )
+    finally:
+        U._linear_in_parameters = original
+    np.testing.assert_allclose(unc.complete_information, general.complete_information, rtol=1e-9, atol=1e-8)
+    # the scores of a module without the linear form come from forward mode: the same information
+    np.testing.assert_allclose(unc.score_variance, general.score_variance, rtol=1e-9, atol=1e-8)
+
+
+def test_windowed_covariance_of_pieces_equals_that_of_whole_trajectories():
+    """Pieces that own consecutive steps and run ``margin`` steps past them give the same lag-windowed
+    covariance as whole trajectories (the same scores cut into pieces), the record's last piece
+    ending at its last step."""
+    rng = np.random.default_rng(0)
+    M, T, d, lag = 40, 103, 3, 4
+    whole = torch.as_tensor(rng.standard_normal((M, T, 1, d))).cumsum(1) * 0.3  # correlated in time
+    whole = whole + torch.as_tensor(rng.standard_normal((M, T, 1, d)))
+    starts, length, own = U._pieces(T, 6, 20)
+    assert length == 26 and starts[-1] == T - length and own.sum() == T and own.any(0).all() is not None
+    idx = torch.as_tensor(starts).unsqueeze(1) + torch.arange(length)  # (G, n)
+    pieces = whole[:, idx].permute(1, 2, 3, 0, 4)  # (G, n, B, M, d)
+    V_pieces, _, mean_pieces = U._windowed_covariance(pieces, torch.as_tensor(own), lag=lag)
+    V_whole, _, mean_whole = U._windowed_covariance(
+        whole.permute(1, 2, 0, 3).unsqueeze(0), torch.ones(1, T, dtype=torch.bool), lag=lag
+    )
+    np.testing.assert_allclose(V_pieces, V_whole, rtol=1e-10)
+    np.testing.assert_allclose(mean_pieces, mean_whole, rtol=1e-10)
+    # brute force: sum over |k - j| <= lag of the centred cross products
+    c = (whole - whole.mean(0, keepdim=True))[:, :, 0].numpy()
+    brute = sum(
+        np.einsum("mi,mj->ij", c[:, k], c[:, j])
+        for k in range(T)
+        for j in range(max(0, k - lag), min(T, k + lag + 1))
+    ) / (M - 1)
+    np.testing.assert_allclose(V_whole, brute, rtol=1e-10)
+
+
+def test_backward_segments_follow_the_smoothing_distribution():
+    """Pieces started from the FFBSm marginals at their last step: their counts follow the marginal
+    smoothing weights and their pairs the pairwise ones (the mean of ``x_{k+1}`` given ``x_k`` is
+    ``xbar_k``; within 5 standard errors in every cell), with every rejection round used
+    (``max_tries`` above the first round's) and with the exact draws alone (``max_tries=1`` with a
+    low acceptance leaves many)."""
+    model, data, est = _paper_estep("gaussian", 1, n=60, seed=3)
+    X = est.filter.particles[:, 0, :, 0]
+    p = torch.exp(est.smoother.log_weights[:, 0])
+    M = 20000
+    for tries in (13, 1):
+        Js = backward_segments(
+            model, data, est.filter, M, [0, 20, 35], 25, log_weights=est.smoother.log_weights,
+            max_tries=tries, generator=torch.Generator().manual_seed(1),
+        )[:, :, 0]  # (G, n, M)
+        for g, a in enumerate((0, 20, 35)):
+            J = Js[g]
+            ones = torch.ones(25, M, dtype=torch.float64)
+            counts = torch.zeros(25, 50, dtype=torch.float64).scatter_add_(1, J, ones)
+            q = p[a : a + 25]
+            z = torch.where(q > 1e-3, (counts / M - q) / torch.sqrt(q * (1 - q) / M), 0.0)
+            assert float(z.abs().max()) < 5.0, (tries, g)
+            nxt = torch.gather(X[a + 1 : a + 25], 1, J[1:])
+            m = torch.zeros(24, 50, dtype=torch.float64).scatter_add_(1, J[:-1], nxt)
+            m2 = torch.zeros(24, 50, dtype=torch.float64).scatter_add_(1, J[:-1], nxt * nxt)
+            c = counts[:-1]
+            spread = m2 / c.clamp(min=1) - (m / c.clamp(min=1)) ** 2
+            seen = (c > 500) & (spread > 1e-8)  # next states all one particle: nothing to test
+            mean = m[seen] / c[seen]
+            se = torch.sqrt(spread[seen] / c[seen])
+            xbar = est.smoother.next_mean[a : a + 24, 0, :, 0][seen]
+            assert float(((mean - xbar) / se).abs().max()) < 5.0, (tries, g)
+    with pytest.raises(ValueError, match="log_weights"):
+        backward_segments(model, data, est.filter, 5, [0], 10)
+
+
+def test_a_linear_in_parameters_module_whose_forward_differs_takes_the_general_path():
+    """A ``LinearInParameters`` subclass whose ``forward`` is not ``offset + Phi theta`` (here shifted)
+    gets the autograd Hessian and scores, not its features' closed forms: the same information as
+    with every module treated as general."""
+    from torch_nssm.datasets.paper import PaperObservation
+
+    class Shifted(PaperObservation):
+        def forward(self, x, u):
+            return super().forward(x, u) + 0.1
+
+    model, data, est = _paper_estep("student-t", 1, n=60)
+    model = type(model)(model.f, Shifted(1.0), model.Rw, model.noise, model.x0_mean, model.x0_cov)
+    gen = lambda: torch.Generator().manual_seed(0)  # noqa: E731
+    unc = U.observed_information(model, data, est, n_trajectories=20, generator=gen())
+    original = U._linear_in_parameters
+    try:
+        U._linear_in_parameters = lambda module: False
+        general = U.observed_information(model, data, est, n_trajectories=20, generator=gen())
+    finally:
+        U._linear_in_parameters = original
+    np.testing.assert_allclose(unc.complete_information, general.complete_information, rtol=1e-9, atol=1e-8)
+    np.testing.assert_allclose(unc.score_variance, general.score_variance, rtol=1e-9, atol=1e-8)

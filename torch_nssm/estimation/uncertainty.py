@@ -10,10 +10,14 @@ At any parameter value ``theta`` (docs/uncertainty.md)::
   parameter-free scatter, the observation term from the rows ``(x_k^l, u_k) -> y_k`` with the
   smoothing weights ``W_{k|N}^l``.  For Student-t noise the observation term is the marginal t
   density of ``y_k`` given ``x_k`` (the latent scales integrated out).
-* The second term needs the *joint* smoothing distribution: ``M`` trajectories are drawn from the
-  particle approximation by backward simulation
-  (:func:`~torch_nssm.inference.smoothing.backward_trajectories`) and the complete-data score of
-  each (autograd, per trajectory) gives its sample covariance.
+  Gaussian parts whose mean is linear in its parameters are written with the rows' weighted
+  moments, the Student-t observation with closed-form terms besides; autograd over the rows
+  otherwise.
+* The second term needs the *joint* smoothing distribution, but only over a lag window of a few
+  steps: ``M`` draws of pieces of trajectories from the particle approximation
+  (:func:`~torch_nssm.inference.smoothing.backward_segments`), the complete-data score of each step
+  in closed form given the residuals, and their covariances summed up to the window
+  (:func:`_windowed_covariance`).
 
 Both are computed on a working scale where normal approximations are better: module parameters as
 they are, full covariances (``Rw``, ``Rv``) by their log-Cholesky factor, diagonal variances and
@@ -34,7 +38,8 @@ from torch import Tensor, nn
 from torch.func import functional_call
 
 from ..core.model import SequenceBatch, StateSpaceModel
-from ..inference.smoothing import backward_trajectories
+from ..core.parametric import LinearInParameters
+from ..inference.smoothing import backward_segments
 from .estep import EStepOutput
 from .mstep import ROW_WEIGHT_CUTOFF
 
@@ -435,30 +440,58 @@ def observed_information(
         r = torch.where(mask, y - ll.g(params, x, u), torch.zeros_like(y))
         return (W * ll.observation(params, r, mask, all_observed)).sum()
 
+    # the Gaussian parts with a mean linear in its parameters (always the transition's for such an
+    # f; the observation's for Gaussian noise): Q from the weighted moments, a tiny function of w
+    moments = {
+        "transition": _gaussian_moments(ll, "f", trans[0], trans[1], trans[2], trans[3]),
+        "observation": (
+            _gaussian_moments(ll, "g", obs[0], obs[1], obs[2], obs[4])
+            if ll.gaussian and ll.family != "student-t-per-output" and all_observed else None
+        ),
+    }
+    n_obs = float(obs[4].sum())
+
+    def transition_moments(w: Tensor) -> Tensor:
+        return _gaussian_term(moments["transition"], w, ll.Rw(ll.unpack(w)), scatter, n_trans)
+
+    def observation_moments(w: Tensor) -> Tensor:
+        return _gaussian_term(moments["observation"], w, ll.unpack(w).get("Rv", model.noise.Rv), None, n_obs)
+
+    t_hessian = None
+    if moments["observation"] is None and ll.family == "student-t" and not ll.gaussian and all_observed:
+        if _linear_in_parameters(model.g) or not _module_columns(ll, "g")[0]:
+            try:
+                t_hessian = _student_t_observation_hessian(ll, w0, obs)
+            except _NotLinear:  # its forward is not offset + Phi theta: autograd below
+                t_hessian = None
+
     hessian = torch.zeros(d, d, dtype=dtype)
     owner = np.concatenate([[b.key.startswith("f.") or b.key == "Rw"] * b.n_working for b in blocks] or [[]])
-    for part, mine in ((transition_part, owner.astype(bool)), (observation_part, ~owner.astype(bool))):
+    for name, mine in (("transition", owner.astype(bool)), ("observation", ~owner.astype(bool))):
         idx = torch.as_tensor(np.flatnonzero(mine), dtype=torch.long)
-        if idx.numel():
+        if idx.numel() and name == "observation" and t_hessian is not None:
+            hessian[idx.unsqueeze(-1), idx] = t_hessian[idx.unsqueeze(-1), idx].detach().cpu()
+        elif idx.numel():
+            if moments[name] is not None:
+                part = transition_moments if name == "transition" else observation_moments
+            else:
+                part = transition_part if name == "transition" else observation_part
+
             def restricted(v: Tensor, part=part, idx=idx) -> Tensor:
                 return part(w0.index_put((idx,), v))
 
             h = torch.autograd.functional.hessian(restricted, w0[idx])
             hessian[idx.unsqueeze(-1), idx] = h.detach().cpu()
 
-    # the complete-data score of each backward-simulated trajectory, per time step
-    Js = backward_trajectories(model, data, est.filter, n_trajectories, generator=generator)  # (T, B, M)
-    X = est.filter.particles
-    T, B, L, nx = X.shape
-    M = Js.shape[-1]
-    paths = torch.gather(X, 2, Js.unsqueeze(-1).expand(T, B, M, nx)).permute(2, 0, 1, 3)  # (M, T, B, nx)
+    # the variance of the complete-data score, from pieces of backward-simulated trajectories
     H = hessian.numpy()
     if d:
-        contributions = _score_contributions(ll, w0, paths, data, all_observed)  # (M, T, B, d)
-        V, lag = _windowed_covariance(contributions)
-        mean_score = contributions.sum((1, 2)).mean(0)
+        V, lag, mean_score = _score_variance(
+            ll, w0, model, data, est, n_trajectories, all_observed, generator
+        )
     else:
         V, lag, mean_score = np.zeros((0, 0)), 0, np.zeros(0)
+    M = int(n_trajectories)
     info = -H - V
     info = 0.5 * (info + info.T)
     cov_w = _inverse(info)
@@ -518,18 +551,464 @@ def _inverse(info: np.ndarray) -> np.ndarray:
     return cov
 
 
-def _score_contributions(
-    ll: _LogLikelihood, w0: Tensor, paths: Tensor, data: SequenceBatch, all_observed: bool
-) -> np.ndarray:
-    """Per trajectory and time step, the gradient of ``log p(y_k | x_k) + log p(x_{k+1} | x_k)``
-    (autograd, vectorised over the rows): ``(M, T, B, d)``."""
-    M, T, B, nx = paths.shape
-    dtype = paths.dtype
-    x_next = torch.cat([paths[:, 1:], paths[:, -1:]], 1)  # the last step has no transition
-    valid = torch.cat([data.transition_mask, torch.zeros_like(data.transition_mask[:1])], 0).to(dtype)
-    observed = data.obs_mask.any(-1).to(dtype)
-    y, mask = torch.nan_to_num(data.y), data.obs_mask
-    one = torch.ones(1, dtype=dtype, device=paths.device)
+#: Rows per vectorised chunk of the per-step scores (bounds the memory).
+_ROW_CHUNK = 1 << 16
+
+#: Trajectories whose autocorrelations choose the lag window.
+_WINDOW_PATHS = 64
+
+#: Sokal's window constant: the lag window is the smallest ``K`` with ``K >= c * tau(K)``.
+_SOKAL_C = 5.0
+
+#: The trajectories are drawn as pieces (:func:`~torch_nssm.inference.smoothing.backward_segments`):
+#: each piece owns :data:`_PIECE_CORE` steps and runs :data:`_PIECE_MARGIN` steps past them, which
+#: must exceed the lag window (else the pieces are drawn again with a wider margin).
+_PIECE_MARGIN = 12
+_PIECE_CORE = 64
+
+#: Rejection tries per backward index before its exact ``O(L)`` draw, per particle: the draw costs
+#: ``O(L)``, a try ``O(1)`` (the tries beyond the first round are drawn in rounds for the indices
+#: left, each round a dozen small operations), so more particles pay for more tries.
+_TRIES_PER_PARTICLE = 1 / 20
+
+
+@dataclass
+class _Rows:
+    """Per-step rows of the trajectories: ``x_k``, ``x_{k+1}``, ``u_k``, ``y_k`` (NaN as 0), its mask,
+    whether the transition ``k -> k+1`` exists and whether anything of ``y_k`` is observed."""
+
+    x: Tensor
+    x_next: Tensor
+    u: Tensor
+    y: Tensor
+    mask: Tensor
+    valid: Tensor
+    observed: Tensor
+
+    def __len__(self) -> int:
+        return self.x.shape[0]
+
+    def __getitem__(self, sl: slice) -> _Rows:
+        return _Rows(*(getattr(self, k)[sl] for k in self.__dataclass_fields__))
+
+
+def _pieces(T: int, margin: int, core: int) -> tuple[list[int], int, np.ndarray]:
+    """Starts and length of the pieces, and which of their steps each owns ``(G, length)``: piece
+    ``s`` owns ``[s c, (s + 1) c)`` and runs ``margin`` steps further (the last one ends at ``T - 1``
+    and owns the steps from ``(G - 1) c`` to it), with ``c`` at most ``core``, chosen so that the
+    pieces cover the record with (almost) no step drawn twice beyond the margins; one piece (whole
+    trajectories) when the record is not longer than ``core + margin``."""
+    if core + margin >= T:
+        return [0], T, np.ones((1, T), dtype=bool)
+    G = -(-(T - margin) // core)
+    core = -(-(T - margin) // G)
+    length = core + margin
+    starts = [min(s * core, T - length) for s in range(G)]
+    steps = np.asarray(starts)[:, None] + np.arange(length)
+    first, end = np.arange(G) * core, np.append(np.arange(1, G) * core, T)  # the last owns to the end
+    own = (steps >= first[:, None]) & (steps < end[:, None])
+    return starts, length, own
+
+
+def _piece_rows(X: Tensor, data: SequenceBatch, Js: Tensor, starts: list[int]) -> _Rows:
+    """The rows of trajectory pieces ``Js`` ``(G, n, B, M)``, ordered ``(G, n, B, M)``."""
+    G, n, B, M = Js.shape
+    T, _, L, nx = X.shape
+    device = X.device
+    times = torch.as_tensor(starts, device=device).unsqueeze(1) + torch.arange(n, device=device)  # (G, n)
+    flat = (times.view(G, n, 1, 1) * B + torch.arange(B, device=device).view(1, 1, B, 1)) * L + Js
+    paths = X.reshape(-1, nx)[flat.view(-1)].view(G, n, B, M, nx)
+    x_next = torch.cat([paths[:, 1:], paths[:, -1:]], 1)  # a piece's last step has no transition
+    trans = torch.cat([data.transition_mask, torch.zeros_like(data.transition_mask[:1])], 0)[times]
+    valid = trans & (torch.arange(n, device=device) < n - 1).view(1, n, 1)  # (G, n, B)
+
+    def rows(a: Tensor) -> Tensor:  # (G, n, B, ...) -> (G * n * B * M, ...)
+        a = a.unsqueeze(3)
+        return a.expand(*a.shape[:3], M, *a.shape[4:]).reshape(G * n * B * M, *a.shape[4:])
+
+    y, mask = torch.nan_to_num(data.y)[times], data.obs_mask[times]
+    return _Rows(
+        paths.reshape(-1, nx), x_next.reshape(-1, nx), rows(data.u[times]), rows(y), rows(mask),
+        rows(valid.to(X.dtype).unsqueeze(-1)).squeeze(-1),
+        rows(mask.any(-1).to(X.dtype).unsqueeze(-1)).squeeze(-1),
+    )
+
+
+def _score_variance(
+    ll: _LogLikelihood,
+    w0: Tensor,
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    est: EStepOutput,
+    n_trajectories: int,
+    all_observed: bool,
+    generator: torch.Generator | None,
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """``Var[sum_k s_k | y]`` (lag-windowed), the lag window and the mean score, from ``M`` draws of
+    pieces of smoothed trajectories.
+
+    The window sums the covariances ``Cov(s_k, s_j)`` of the per-step scores up to a lag ``K``
+    (:func:`_windowed_covariance`), so only pieces that span each step and ``K`` steps after it
+    are needed: pieces of :data:`_PIECE_CORE` + :data:`_PIECE_MARGIN` steps, drawn backward all at
+    once from the E-step's marginal smoothing weights (one short loop instead of one of ``T``
+    steps).  Where the window the scores call for does not fit in the margin, the pieces are drawn
+    again with a margin of twice the window.
+    """
+    X = est.filter.particles
+    T = X.shape[0]
+    tries = int(min(53, max(8, X.shape[2] * _TRIES_PER_PARTICLE)))
+    margin = _PIECE_MARGIN
+    while True:
+        starts, length, own = _pieces(T, margin, max(_PIECE_CORE, 3 * margin))
+        Js = backward_segments(
+            model, data, est.filter, n_trajectories, starts, length,
+            log_weights=est.smoother.log_weights, max_tries=tries, generator=generator,
+        )
+        G, n, B, M = Js.shape
+        scores = _row_scores(ll, w0, _piece_rows(X, data, Js, starts), all_observed).view(G, n, B, M, -1)
+        V, lag, mean_score = _windowed_covariance(scores, torch.as_tensor(own, device=X.device))
+        if G == 1 or lag < margin:
+            return V, lag, mean_score
+        margin = 2 * lag
+
+
+def _row_scores(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observed: bool) -> Tensor:
+    """Per row, the gradient of ``log p(y_k | x_k) + log p(x_{k+1} | x_k)`` in the working parameters
+    ``(R, d)`` (masked by ``observed`` and ``valid``).
+
+    The noise parameters' scores are closed form given the residuals (:func:`_closed_form_scores`);
+    the module parameters' are the residual gradients times the modules' Jacobians in their
+    parameters, one forward-mode pass over all rows per parameter.  Where that is not possible
+    (partly observed outputs of a multivariate noise, a module without forward-mode derivatives)
+    the whole row is differentiated by reverse mode, vectorised over the rows
+    (:func:`_row_scores_autograd`).
+    """
+    out = torch.empty(len(rows), w0.numel(), dtype=w0.dtype, device=w0.device)
+    closed = all_observed or ll.family == "student-t-per-output"
+    for start in range(0, len(rows), _ROW_CHUNK):
+        chunk = rows[start : start + _ROW_CHUNK]
+        done = False
+        if closed:
+            try:
+                out[start : start + _ROW_CHUNK] = _closed_form_scores(ll, w0, chunk)
+                done = True
+            except (RuntimeError, NotImplementedError):  # a module without forward-mode derivatives
+                closed = False
+        if not done:
+            out[start : start + _ROW_CHUNK] = _row_scores_autograd(ll, w0, chunk, all_observed)
+    return out
+
+
+def _linear_in_parameters(module: nn.Module) -> bool:
+    """Whether ``module`` computes ``offset + Phi theta`` (a :class:`LinearInParameters`, whose
+    ``forward`` is by contract that function, without hooks): its Jacobian in ``theta`` is ``Phi``.
+    :func:`_module_jacobian` checks the contract on the rows' first few."""
+    return isinstance(module, LinearInParameters) and not (module._forward_hooks or module._forward_pre_hooks)
+
+
+def _matches_features(
+    module: nn.Module, x: Tensor, u: Tensor, Phi: Tensor, offset: Tensor, theta: Tensor
+) -> bool:
+    """Whether ``module(x, u)`` is ``offset + Phi theta`` on these rows (the contract's check)."""
+    return torch.allclose(module(x, u), offset + (Phi @ theta.unsqueeze(-1)).squeeze(-1))
+
+
+def _module_columns(ll: _LogLikelihood, label: str) -> tuple[list[int], list[_Block]]:
+    cols, parts, start = [], [], 0
+    for block, size in zip(ll.blocks, ll.sizes):
+        if block.key.startswith(label + "."):
+            cols.extend(range(start, start + size))
+            parts.append(block)
+        start += size
+    return cols, parts
+
+
+def _module_jacobian(ll: _LogLikelihood, label: str, w: Tensor, x: Tensor, u: Tensor):
+    """``module(x, u)`` ``(R, out)`` at the working parameters ``w``, its Jacobian in the module's
+    working parameters ``(R, out, d_module)`` (``None`` without free parameters) and their columns
+    in ``w``.
+
+    For a module linear in its parameters the value is ``offset + Phi theta`` and the Jacobian
+    ``Phi``'s free columns; otherwise forward mode, all rows at once."""
+    module = ll.model.f if label == "f" else ll.model.g
+    cols, parts = _module_columns(ll, label)
+    if cols and _linear_in_parameters(module):
+        with torch.no_grad():
+            Phi, offset = module.features(x, u)
+            theta = module.theta().detach().to(w.dtype)
+            free = torch.nonzero(module.free_mask()).squeeze(-1)
+            head = slice(0, 8)
+            if not _matches_features(module, x[head], u[head], Phi[head], offset[head], theta):
+                raise _NotLinear(f"{type(module).__name__}.forward is not offset + Phi theta")
+        value = offset + (Phi @ theta.unsqueeze(-1)).squeeze(-1)
+        return value, (Phi if free.numel() == theta.numel() else Phi[..., free]), cols
+    with torch.no_grad():
+        value = module(x, u)
+    if not cols:
+        return value, None, cols
+    idx = torch.as_tensor(cols, device=w.device)
+    sizes = [b.n_working for b in parts]
+
+    def call(v: Tensor) -> Tensor:
+        split = torch.split(v, sizes)
+        params = {b.key[len(label) + 1 :]: p.reshape(b.value.shape) for b, p in zip(parts, split)}
+        return functional_call(module, params, (x, u))
+
+    jac = torch.func.jacfwd(call)(w[idx].detach())
+    return value, jac.detach(), cols
+
+
+def _cholesky_scores(C: Tensor, z: Tensor, v: Tensor, lam: Tensor | float) -> Tensor:
+    """Gradient of ``-lam |C^-1 r|^2 / 2 - log det C`` (``lam`` at the row's value, which is exact
+    for the Student-t: see :func:`_closed_form_scores`) in the log-Cholesky working entries of
+    ``C C^T`` (``log C_ii``, then the strict lower triangle): rows ``(R, n(n+1)/2)`` from
+    ``z = C^-1 r`` and ``v = C^-T z``."""
+    n = C.shape[-1]
+    lv = lam.unsqueeze(-1) * v if isinstance(lam, Tensor) else lam * v
+    out = torch.empty(v.shape[0], n * (n + 1) // 2, dtype=v.dtype, device=v.device)
+    out[:, :n] = lv * z * torch.diagonal(C) - 1.0  # C_ii (lam v_i z_i) - 1
+    rows, cols = torch.tril_indices(n, n, -1).tolist()
+    for k, (i, j) in enumerate(zip(rows, cols)):
+        out[:, n + k] = lv[:, i] * z[:, j]
+    return out
+
+
+def _dof_score(nu: Tensor, delta2: Tensor, p: float) -> Tensor:
+    """``d/d log nu`` of the Student-t log-density with ``p`` components at squared distance
+    ``delta2``."""
+    return (
+        0.5 * nu * (torch.digamma(0.5 * (nu + p)) - torch.digamma(0.5 * nu) - torch.log1p(delta2 / nu))
+        - 0.5 * p + 0.5 * (nu + p) * delta2 / (nu + delta2)
+    )
+
+
+def _columns(ll: _LogLikelihood) -> dict[str, slice]:
+    offsets = np.cumsum([0] + ll.sizes)
+    return {b.key: slice(int(offsets[i]), int(offsets[i + 1])) for i, b in enumerate(ll.blocks)}
+
+
+def _cholesky_and_inverse(S: Tensor) -> tuple[Tensor, Tensor]:
+    C = torch.linalg.cholesky(S)
+    eye = torch.eye(S.shape[-1], dtype=S.dtype, device=S.device)
+    return C, torch.linalg.solve_triangular(C, eye, upper=False)
+
+
+class _NotLinear(RuntimeError):
+    """A :class:`LinearInParameters` module whose ``forward`` is not ``offset + Phi theta``."""
+
+
+def _transition_scores(
+    ll: _LogLikelihood, w: Tensor, x: Tensor, u: Tensor, x_next: Tensor, weight: Tensor
+) -> list[tuple[list[int], Tensor]]:
+    """``weight`` times the gradient of ``log N(x_next; f(x, u), Rw)`` per row, as ``(columns of w,
+    rows (R, k))`` pairs for ``f``'s and ``Rw``'s parameters."""
+    params = ll.unpack(w)
+    col = _columns(ll)
+    fx, Jf, f_cols = _module_jacobian(ll, "f", w, x, u)
+    C, Ci = _cholesky_and_inverse(params["Rw"] if "Rw" in params else ll.model.Rw.detach().to(w.dtype))
+    z = (x_next - fx) @ Ci.mT
+    v = z @ Ci  # Rw^-1 (x_next - f)
+    weight = weight.unsqueeze(-1)
+    out = []
+    if Jf is not None:
+        out.append((f_cols, weight * _row_products(v, Jf)))
+    if "Rw" in col:
+        out.append((list(range(col["Rw"].start, col["Rw"].stop)), weight * _cholesky_scores(C, z, v, 1.0)))
+    return out
+
+
+def _observation_scores(
+    ll: _LogLikelihood, w: Tensor, x: Tensor, u: Tensor, y: Tensor, mask: Tensor, weight: Tensor
+) -> list[tuple[list[int], Tensor]]:
+    """``weight`` times the gradient of ``log p_v(y - g(x, u))`` per row (the observed components;
+    every component observed for a multivariate noise), as ``(columns of w, rows (R, k))`` pairs
+    for ``g``'s, ``Rv``'s and ``dof``'s parameters."""
+    params = ll.unpack(w)
+    col = _columns(ll)
+    gx, Jg, g_cols = _module_jacobian(ll, "g", w, x, u)
+    r = torch.where(mask, y - gx, torch.zeros_like(gx))
+    weight = weight.unsqueeze(-1)
+    Rv = params["Rv"] if "Rv" in params else ll.model.noise.Rv.detach().to(w.dtype)
+    dof = params["dof"] if "dof" in params else getattr(ll.model.noise, "dof", None)
+    put = {}
+    if ll.family == "student-t-per-output":
+        m = weight * mask.to(r.dtype)
+        var = torch.diagonal(Rv)
+        nu = (dof if "dof" in params else dof.detach().to(w.dtype)).expand(var.shape)
+        d2 = r * r / var
+        lam = (nu + 1.0) / (nu + d2)
+        grad_mu = m * lam * r / var
+        put["Rv"] = m * (0.5 * lam * d2 - 0.5)
+        per = m * _dof_score(nu, d2, 1.0)
+        put["dof"] = per if dof.numel() == var.numel() else per.sum(-1, keepdim=True)
+    else:
+        p = r.shape[-1]
+        C, Ci = _cholesky_and_inverse(Rv)
+        z = r @ Ci.mT
+        v = z @ Ci
+        delta2 = (z * z).sum(-1)
+        if ll.gaussian:
+            lam = torch.ones_like(delta2)
+        else:
+            nu = dof if "dof" in params else dof.detach().to(w.dtype)
+            lam = (nu + p) / (nu + delta2)
+            put["dof"] = weight * _dof_score(nu, delta2, float(p)).unsqueeze(-1)
+        grad_mu = weight * lam.unsqueeze(-1) * v
+        put["Rv"] = weight * _cholesky_scores(C, z, v, lam)
+    out = []
+    if Jg is not None:
+        out.append((g_cols, _row_products(grad_mu, Jg)))
+    out.extend((list(range(col[k].start, col[k].stop)), v) for k, v in put.items() if k in col)
+    return out
+
+
+def _closed_form_scores(ll: _LogLikelihood, w0: Tensor, rows: _Rows) -> Tensor:
+    """Per-row scores ``(R, d)`` in closed form given the residuals.
+
+    With ``r`` a residual, ``Sigma = C C^T`` its scale, ``z = C^-1 r``, ``v = Sigma^-1 r`` and, for a
+    Student-t with ``nu`` degrees of freedom and ``p`` components, ``lam = (nu + p) / (nu + |z|^2)``
+    (1 for a Gaussian): the gradient in the prediction is ``lam v``, in the log-Cholesky entries
+    ``C_ii lam v_i z_i - 1`` (diagonal, log scale) and ``lam v_i z_j`` (``i > j``), in ``log nu``
+    :func:`_dof_score`.  The module parameters' scores are the prediction gradients times the
+    modules' Jacobians (:func:`_module_jacobian`).
+    """
+    out = torch.zeros(len(rows), w0.numel(), dtype=w0.dtype, device=w0.device)
+    with torch.no_grad():
+        parts = _transition_scores(ll, w0, rows.x, rows.u, rows.x_next, rows.valid)
+        parts += _observation_scores(ll, w0, rows.x, rows.u, rows.y, rows.mask, rows.observed)
+    for cols, value in parts:
+        if cols == list(range(cols[0], cols[0] + len(cols))):
+            out[:, cols[0] : cols[0] + len(cols)] = value
+        else:
+            out[:, cols] = value
+    return out
+
+
+def _row_products(a: Tensor, J: Tensor) -> Tensor:
+    """``a_r^T J_r`` per row: ``a`` ``(R, n)``, ``J`` ``(R, n, k)`` -> ``(R, k)`` (elementwise for small
+    ``n``: a batched product of ``1 x n`` by ``n x k`` matrices is ~5x slower)."""
+    out = a[:, :1] * J[:, 0]
+    for i in range(1, a.shape[1]):
+        out = out + a[:, i : i + 1] * J[:, i]
+    return out
+
+
+def _gaussian_moments(
+    ll: _LogLikelihood, label: str, x: Tensor, u: Tensor, target: Tensor, weight: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+    """For a Gaussian term ``sum_r w_r log N(target_r; m(x_r, u_r), Sigma)`` whose mean
+    ``m = offset + Phi theta`` is linear in the module's parameters: the weighted moments that
+    give ``E(theta) = sum_r w_r e_r e_r^T``, ``e_r = target_r - m_r``, for any ``theta``
+    (docs/method.md §4, as the M-step's normal equations), and the module's ``theta``, its free
+    entries and their columns in ``w``.  ``None`` where the module is not linear in its parameters."""
+    module = ll.model.f if label == "f" else ll.model.g
+    cols, _ = _module_columns(ll, label)
+    with torch.no_grad():
+        if not cols:  # nothing free: the mean is a constant
+            e, Phi = target - module(x, u), None
+            theta = free = None
+        elif _linear_in_parameters(module):
+            Phi, offset = module.features(x, u)
+            theta = module.theta().detach().to(x.dtype)
+            head = slice(0, 8)
+            if not _matches_features(module, x[head], u[head], Phi[head], offset[head], theta):
+                return None
+            free = torch.nonzero(module.free_mask()).squeeze(-1)
+            e = target - offset
+        else:
+            return None
+        n = e.shape[-1]
+        F = e if Phi is None else torch.cat([e, Phi.reshape(-1, n * Phi.shape[-1])], -1)
+        G = (F * weight.unsqueeze(-1)).mT @ F  # (n + n P, n + n P)
+    return G, theta, free, torch.as_tensor(cols, dtype=torch.long), n
+
+
+def _gaussian_term(moments, w: Tensor, Sigma: Tensor, extra: Tensor | None, count: Tensor | float) -> Tensor:
+    """``-tr(Sigma^-1 (E(theta) + extra)) / 2 - count log det Sigma / 2`` from :func:`_gaussian_moments`,
+    with the module's free parameters taken from ``w``."""
+    G, theta, free, cols, n = moments
+    if theta is None:
+        E = G
+    else:
+        th = theta.index_copy(0, free, w[cols.to(w.device)])
+        P = th.numel()
+        M1 = G[:n, n:].reshape(n, n, P)  # sum w e_i Phi_jp
+        M2 = G[n:, n:].reshape(n, P, n, P)  # sum w Phi_ip Phi_jq
+        cross = M1 @ th  # (n, n): sum w e_i (Phi theta)_j
+        E = G[:n, :n] - cross - cross.mT + torch.einsum("p,ipjq,q->ij", th, M2, th)
+    if extra is not None:
+        E = E + extra
+    C, Ci = _cholesky_and_inverse(Sigma)
+    return -0.5 * (Ci @ E @ Ci.mT).diagonal().sum() - count * torch.log(torch.diagonal(C)).sum()
+
+
+def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tensor | None:
+    """The Hessian ``(d, d)`` of the observation part of ``Q``, ``sum_r W_r log St(y_r; g(x_r), Rv,
+    nu)`` (every component observed), for ``g`` linear in its parameters; ``None`` otherwise.
+
+    Per row the log-density is ``h(q, nu) - log det C`` with ``q = |C^-1 (y - g)|^2`` and
+    ``h = c(nu) - (nu + p) / 2 log(1 + q / nu)``, so with ``lam = (nu + p) / (nu + q)``:
+
+    * ``sum_r W_r h_q d2 q`` is the Hessian of ``-sum_r W_r lam_r q_r(w) / 2`` with the ``lam_r``
+      held fixed: a Gaussian term with weights ``W lam``, from its moments
+      (:func:`_gaussian_moments`, a tiny function of ``w``);
+    * ``sum_r W_r h_qq dq dq^T`` (``h_qq = (nu + p) / (2 (nu + q)^2)``) is one weighted product of
+      the rows' ``dq`` (closed form: ``-2 Phi^T v`` and ``-2 v_i z_j``, ``-2 C_ii v_i z_i``);
+    * the terms in ``log nu`` are closed form per row.
+    The log-determinant is linear on the log-Cholesky scale."""
+    x, u, y, mask, W = obs
+    col = _columns(ll)
+    params = ll.unpack(w0)
+    with torch.no_grad():
+        gx, Jg, g_cols = _module_jacobian(ll, "g", w0, x, u)
+        Rv = params["Rv"] if "Rv" in params else ll.model.noise.Rv.detach().to(w0.dtype)
+        dof = params["dof"] if "dof" in params else ll.model.noise.dof.detach().to(w0.dtype)
+        p = y.shape[-1]
+        C, Ci = _cholesky_and_inverse(Rv)
+        z = (y - gx) @ Ci.mT
+        v = z @ Ci
+        q = (z * z).sum(-1)
+        nu = dof
+        lam = (nu + p) / (nu + q)
+        dq = torch.zeros(x.shape[0], w0.numel(), dtype=w0.dtype, device=w0.device)
+        if Jg is not None:
+            dq[:, g_cols] = -2.0 * _row_products(v, Jg)
+        if "Rv" in col:
+            diagonal = (torch.arange(p * (p + 1) // 2, device=w0.device) < p).to(w0.dtype)
+            dq[:, col["Rv"]] = -2.0 * (_cholesky_scores(C, z, v, 1.0) + diagonal)
+        h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
+        H = (dq * (W * h_qq).unsqueeze(-1)).mT @ dq
+        if "dof" in col:
+            k = col["dof"].start
+            cross = (W * (-nu * (q - p) / (2.0 * (nu + q) ** 2))).unsqueeze(-1) * dq
+            H[k] += cross.sum(0)
+            H[:, k] += cross.sum(0)
+            l_nu = (
+                0.5 * torch.digamma(0.5 * (nu + p)) - 0.5 * torch.digamma(0.5 * nu) - 0.5 * p / nu
+                - 0.5 * torch.log1p(q / nu) + 0.5 * (nu + p) * q / (nu * (nu + q))
+            )
+            l_nunu = (
+                0.25 * torch.polygamma(1, 0.5 * (nu + p)) - 0.25 * torch.polygamma(1, 0.5 * nu)
+                + 0.5 * p / nu**2
+                + 0.5 * q / (nu * (nu + q))
+                + 0.5 * q * (nu * (nu + q) - (nu + p) * (2.0 * nu + q)) / (nu**2 * (nu + q) ** 2)
+            )
+            H[k, k] += (W * (nu * l_nu + nu**2 * l_nunu)).sum()
+        moments = _gaussian_moments(ll, "g", x, u, y, W * lam)
+    if moments is None:
+        return None
+
+    def weighted(w: Tensor) -> Tensor:
+        return _gaussian_term(moments, w, ll.unpack(w).get("Rv", ll.model.noise.Rv), None, 0.0)
+
+    return H + torch.autograd.functional.hessian(weighted, w0)
+
+
+def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observed: bool) -> Tensor:
+    """:func:`_row_scores` by reverse-mode autograd of each row's log-density (vectorised over the
+    rows with ``torch.func``): general, and the reference the closed forms are tested against."""
+    dtype = w0.dtype
+    one = torch.ones(1, dtype=dtype, device=w0.device)
 
     def row(w, x, xn, u, yk, mk, vk, ok):
         params = ll.unpack(w)
@@ -538,31 +1017,19 @@ def _score_contributions(
         r = torch.where(mk, yk - ll.g(params, x, u)[0], torch.zeros_like(yk))
         return out + ok * ll.observation(params, r.unsqueeze(0), mk.unsqueeze(0), all_observed)[0]
 
-    def flat(a: Tensor) -> Tensor:  # (T, B, ...) -> (M * T * B, ...)
-        return a.unsqueeze(0).expand(M, *a.shape).reshape(M * T * B, *a.shape[2:])
-
-    args = (
-        paths.reshape(M * T * B, nx), x_next.reshape(M * T * B, nx), flat(data.u), flat(y), flat(mask),
-        flat(valid), flat(observed),
-    )
-    chunk = max(1, _ROW_CHUNK)
-    grads = torch.func.vmap(torch.func.grad(row), in_dims=(None,) + (0,) * 7, chunk_size=chunk)(w0, *args)
-    return grads.detach().reshape(M, T, B, -1).cpu().numpy()
+    args = (rows.x, rows.x_next, rows.u, rows.y, rows.mask, rows.valid, rows.observed)
+    vectorised = torch.func.vmap(torch.func.grad(row), in_dims=(None,) + (0,) * 7, chunk_size=_ROW_CHUNK)
+    grads = vectorised(w0, *args)
+    return grads.detach()
 
 
-#: Rows per vectorised chunk of the per-step scores (bounds the memory).
-_ROW_CHUNK = 1 << 16
-
-#: Trajectories whose autocorrelations choose the lag window.
-_WINDOW_PATHS = 128
-
-#: Sokal's window constant: the lag window is the smallest ``K`` with ``K >= c * tau(K)``.
-_SOKAL_C = 5.0
-
-
-def _windowed_covariance(contributions: np.ndarray) -> tuple[np.ndarray, int]:
-    """``Var[sum_k s_k | y]`` from per-step scores ``(M, T, B, d)`` of ``M`` trajectories, summing
-    the cross-step covariances ``Cov(s_k, s_j)`` up to a lag window ``K``.
+def _windowed_covariance(
+    scores: Tensor, own: Tensor, lag: int | None = None
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """``Var[sum_k s_k | y]`` from per-step scores ``(G, n, B, M, d)`` of ``M`` draws of ``G``
+    trajectory pieces, summing the cross-step covariances ``Cov(s_k, s_j)`` up to a lag window
+    ``K``; ``own`` ``(G, n)`` marks the steps each piece stands for (every step of the record once).
+    Also the lag ``K`` and the mean score ``E[sum_k s_k | y]``.
 
     Each of the ``T^2`` cross terms has a particle bias of order ``1/L``; summed over all pairs
     that is ``T^2 / L`` against a variance of order ``T``, so the plain covariance of the
@@ -570,26 +1037,49 @@ def _windowed_covariance(contributions: np.ndarray) -> tuple[np.ndarray, int]:
     measurement-noise variance with ``T = 300``, ``L = 2000``).  The true covariances decay
     geometrically with the lag (the smoother forgets), so the window keeps what matters:
     Sokal's rule on the autocorrelation of each parameter's score, the largest window over the
-    parameters (docs/uncertainty.md).
+    parameters (docs/uncertainty.md).  A piece gives ``Cov(s_k, s_j)`` for its owned ``k`` and
+    ``k <= j <= k + K`` (it must run ``K`` steps past them):
+    ``V = sum_k sum_{|j - k| <= K} c_k c_j^T = V1 + V1^T - sum_k c_k c_k^T`` with
+    ``V1 = sum_k c_k (sum_{j=k}^{k+K} c_j)^T``.  ``lag`` sets ``K`` instead (tests).
     """
-    M, T, B, d = contributions.shape
-    c = contributions - contributions.mean(0, keepdims=True)
-    # autocovariance of each parameter's centred score by FFT, summed over (at most _WINDOW_PATHS)
-    # trajectories and the sequences: it only chooses the window
-    n = 1 << int(np.ceil(np.log2(2 * T)))
-    F = np.fft.rfft(c[:_WINDOW_PATHS], n=n, axis=1)
-    acov = np.fft.irfft((F * F.conj()).sum((0, 2)), n=n, axis=0)[:T]  # (T, d)
+    G, n, B, M, d = scores.shape
+    # autocovariance of each parameter's centred score by FFT over the pieces' steps, summed over
+    # (at most _WINDOW_PATHS) draws, the pieces and the sequences, per lag divided by its number of
+    # pairs: it only chooses the window
+    some = scores[:, :, :, :_WINDOW_PATHS]
+    some = some - some.mean(3, keepdim=True)
+    size = 1 << int(np.ceil(np.log2(2 * n)))
+    F = torch.fft.rfft(some, n=size, dim=1)
+    acov = torch.fft.irfft((F * F.conj()).real.sum((0, 2, 3)), n=size, dim=0)[:n]  # (n, d)
+    acov = (acov / torch.arange(n, 0, -1, dtype=acov.dtype, device=acov.device).unsqueeze(-1)).cpu().numpy()
     rho = acov / np.where(acov[:1] > 0, acov[:1], 1.0)
-    tau = 1.0 + 2.0 * np.cumsum(rho[1:], axis=0)  # tau(K) for K = 1 .. T-1
-    K = np.arange(1, T)
-    lag = 0
-    for i in range(d):
-        ok = K >= _SOKAL_C * tau[:, i] if T > 1 else np.zeros(0, dtype=bool)
-        lag = max(lag, int(K[ok][0]) if ok.any() else T - 1)
-    # V = sum_k sum_{|j-k| <= lag} c_k c_j^T: each step against the window sum around it
-    cs = np.concatenate([np.zeros_like(c[:, :1]), np.cumsum(c, axis=1)], 1)
-    hi = np.minimum(np.arange(T) + lag + 1, T)
-    lo = np.maximum(np.arange(T) - lag, 0)
-    window = cs[:, hi] - cs[:, lo]  # (M, T, B, d)
-    V = np.einsum("mtbi,mtbj->ij", c, window) / max(M - 1, 1)
-    return 0.5 * (V + V.T), lag
+    tau = 1.0 + 2.0 * np.cumsum(rho[1:], axis=0)  # tau(K) for K = 1 .. n-1
+    K = np.arange(1, n)
+    if lag is None:
+        lag = 0
+        for i in range(d):
+            ok = K >= _SOKAL_C * tau[:, i] if n > 1 else np.zeros(0, dtype=bool)
+            lag = max(lag, int(K[ok][0]) if ok.any() else n - 1)
+    # piece by piece (a piece's scores stay in cache through the half-dozen passes)
+    hi = torch.clamp(torch.arange(n, device=scores.device) + lag, max=n - 1)
+    lo = torch.arange(n, device=scores.device) - 1
+    V = torch.zeros(d, d, dtype=scores.dtype, device=scores.device)
+    mean_score = torch.zeros(d, dtype=scores.dtype, device=scores.device)
+    own = own.to(scores.device)
+    for g in range(G):
+        s = scores[g]  # (n, B, M, d)
+        mean = s.mean(2, keepdim=True)
+        c = s - mean
+        cs = torch.cumsum(c, 0)
+        steps = torch.nonzero(own[g]).squeeze(-1)
+        forward = cs[hi[steps]]  # sum_{j <= k + K} c_j
+        first = lo[steps]
+        if int(first[0]) < 0:  # the record's first step: nothing before it
+            forward[1:] -= cs[first[1:]]
+        else:
+            forward -= cs[first]
+        owned = c[steps].reshape(-1, d)
+        V += owned.mT @ (2.0 * forward.reshape(-1, d) - owned)  # V1 + V1^T - sum c c^T, symmetrised below
+        mean_score += mean[steps].sum((0, 1, 2))
+    V = (V / max(M - 1, 1)).cpu().numpy()
+    return 0.5 * (V + V.T), lag, mean_score.cpu().numpy()

@@ -40,7 +40,15 @@ from .filtering import FilterOutput
 from .random import Randomness, SequenceStreams
 from .resampling import cumulative_weights, inverse_cdf
 
-__all__ = ["SmootherOutput", "ffbsm", "ffbsi", "smoothed_moments", "TINY_WEIGHT"]
+__all__ = [
+    "SmootherOutput",
+    "ffbsm",
+    "ffbsi",
+    "backward_trajectories",
+    "backward_segments",
+    "smoothed_moments",
+    "TINY_WEIGHT",
+]
 
 #: Smoothing weights below this are set to zero: products of such weights are denormal numbers,
 #: which slow CPU mat-vecs about 17x (docs/method.md §7), and they carry no information.
@@ -590,7 +598,7 @@ def backward_trajectories(
     weights, all drawn and tested at once (a handful of operations per step), the first accepted
     one kept; an index with none accepted is drawn exactly (``O(L)``).  The trajectories are
     independent draws, in ``O(T (L + M max_tries))`` time.  Where a sequence has ended (padding) the
-    index restarts from the filter.
+    index restarts from the filter.  :func:`backward_segments` draws pieces of trajectories.
 
     Parameters
     ----------
@@ -607,36 +615,161 @@ def backward_trajectories(
     Tensor, shape (T, B, M), long
         ``J[k, b, m]``: the particle of sequence ``b`` at time ``k`` on trajectory ``m``.
     """
+    T = filt.particles.shape[0]
+    return backward_segments(
+        model, data, filt, n_trajectories, [0], T, max_tries=max_tries, generator=generator
+    )[0]
+
+
+@torch.no_grad()
+def backward_segments(
+    model: StateSpaceModel,
+    data: SequenceBatch,
+    filt: FilterOutput,
+    n_trajectories: int,
+    starts,
+    length: int,
+    *,
+    log_weights: Tensor | None = None,
+    max_tries: int = 8,
+    generator: torch.Generator | None = None,
+) -> Tensor:
+    """``M`` draws of the pieces ``x_{a:a+length-1}`` of smoothed trajectories, for each start ``a``
+    in ``starts``, all pieces drawn backward together (one loop of ``length`` steps, not ``T``).
+
+    The joint smoothing distribution of a piece is ``p(x_b | y) prod_{k=a}^{b-1} p(x_k | x_{k+1},
+    y_{0:k})`` (``b = a + length - 1``): its last index is drawn from the marginal smoothing weights
+    ``log_weights[b]`` (an E-step's ``W_{b|N}``; FFBSm's are the exact marginals of the particle
+    approximation), the others by backward simulation exactly as :func:`backward_trajectories`
+    (rejection with ``max_tries`` proposals from the filter weights, then the exact ``O(L)`` draw).
+    A piece ending at ``T - 1`` starts from the filter weights, which are the smoothing weights there.
+
+    Parameters
+    ----------
+    model, data, filt
+        As for :func:`ffbsm`.
+    n_trajectories : int
+        Number ``M`` of draws per piece.
+    starts : sequence of int
+        First step of each piece; ``start + length <= T``.
+    length : int
+    log_weights : Tensor, shape (T, B, L), optional
+        Marginal smoothing log-weights for the pieces' last steps (required unless every piece ends
+        at ``T - 1``).
+    max_tries : int
+    generator : torch.Generator, optional
+
+    Returns
+    -------
+    Tensor, shape (len(starts), length, B, M), long
+        ``J[s, i, b, m]``: the particle of sequence ``b`` at time ``starts[s] + i`` on draw ``m``.
+    """
     X, logW = filt.particles, filt.log_weights
     T, B, L, nx = X.shape
-    M, S = int(n_trajectories), max(1, int(max_tries))
+    M, S, n = int(n_trajectories), max(1, int(max_tries)), int(length)
+    device = X.device
+    first = torch.as_tensor(list(starts), dtype=torch.long, device=device)
+    G = first.numel()
+    if G == 0 or n < 1 or int(first.min()) < 0 or int(first.max()) + n > T:
+        raise ValueError(f"pieces of length {n} at {list(starts)} do not fit in {T} steps")
+    ends = first + n - 1
+    if log_weights is None:
+        if bool((ends != T - 1).any()):
+            raise ValueError(
+                "log_weights (the marginal smoothing weights) are needed for pieces ending before T - 1"
+            )
+        log_weights = logW
     Cinv_t = _whitening(model, B, X)
     trans = data.transition_mask
-    all_valid = trans.all(-1).tolist()
-    Js = torch.empty(T, B, M, dtype=torch.long, device=X.device)
-    Js[T - 1] = _draw(logW[T - 1], M, generator)
-    tries = torch.arange(S, device=X.device).view(1, S, 1)
-    for blk in reversed(list(time_blocks(T - 1, B * max(L, M * S)))):
+    GB = G * B
+    Js = torch.empty(G, n, B, M, dtype=torch.long, device=device)
+    Js[:, n - 1] = _draw(log_weights[ends], M, generator)  # (G, B, M)
+    if S > 53:
+        raise ValueError(f"max_tries must be at most 53, got {max_tries}")
+    # the tries come in rounds: S1 for every index, drawn for blocks of steps before the loop, then
+    # rounds of twice as many as the last for the indices none of the earlier ones accepted, drawn
+    # in the loop (with acceptance rates about 0.4-0.5 the first round leaves a tenth; a try costs
+    # ~100x less than an exact O(L) draw)
+    S1 = min(S, _FIRST_TRIES)
+    S2 = S - S1
+    bits = torch.pow(2.0, torch.arange(S - 1, -1, -1, dtype=torch.float64, device=device))  # exact in float64
+    rows_offset = torch.arange(GB, dtype=X.dtype, device=device).unsqueeze(-1)  # (GB, 1)
+    for blk in reversed(list(time_blocks(n - 1, GB * max(L, M * S1)))):
         t = blk.stop - blk.start
-        zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
-        props = _draw(logW[blk], S * M, generator)  # (t, B, S * M): proposals from the filter weights
-        log_u = torch.log(torch.rand(t, B, S, M, dtype=X.dtype, device=X.device, generator=generator))
-        for k in range(blk.stop - 1, blk.start - 1, -1):
-            i = k - blk.start
-            J_next = Js[k + 1]
-            x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
-            cand = torch.gather(zf[i], 1, props[i].unsqueeze(-1).expand(B, S * M, nx)).view(B, S, M, nx)
-            accept = 2.0 * log_u[i] < -squared_norm(x_next.unsqueeze(1) - cand)  # (B, S, M)
-            first = torch.where(accept, tries, S).amin(1, keepdim=True).clamp_(max=S - 1)  # first accepted
-            J = torch.gather(props[i].view(B, S, M), 1, first).squeeze(1)
-            pending = ~accept.any(1)
-            if bool(pending.any()):  # exact draws from the backward kernel
-                b_idx, m_idx = torch.nonzero(pending, as_tuple=True)
-                d = x_next[b_idx, m_idx].unsqueeze(1) - zf[i][b_idx]  # (P, L, nx)
-                J[b_idx, m_idx] = _draw(logW[k][b_idx] - 0.5 * squared_norm(d), 1, generator)[:, 0]
-            if not all_valid[k]:  # past a sequence's end: restart from the filter
-                J = torch.where(trans[k].unsqueeze(-1), J, props[i][:, :M])
-            Js[k] = J
+        times = (first.unsqueeze(0) + torch.arange(blk.start, blk.stop, device=device).unsqueeze(1)).view(-1)
+        # the steps of every piece, piece-major within a local step: (t, G * B, ...)
+        fx = model.transition_steps(X[times], data.u[times])  # (t * G, B, L, nx)
+        zf = _whitened(fx, Cinv_t).view(t, GB, L, nx)
+        zx = _whitened(X[times + 1], Cinv_t).view(t, GB, L, nx)
+        lw = logW[times].view(t, GB, L)
+        valid = trans[times].view(t, GB)
+        any_invalid = (~valid).any(-1).tolist()
+        cdf = cumulative_weights(lw)  # (t, GB, L)
+        u = torch.rand(t * GB, M * S1, dtype=X.dtype, device=device, generator=generator)
+        props = inverse_cdf(cdf.view(t * GB, L), u).view(t, GB, M * S1)  # proposals from the filter weights
+        log_u = 2.0 * torch.log(torch.rand(t, GB, M, S1, dtype=X.dtype, device=device, generator=generator))
+        # the proposals' whitened predictions, gathered for the whole block at once
+        if nx == 1:
+            cand = torch.gather(zf[..., 0], 2, props).view(t, GB, M, S1)
+        else:
+            cand = torch.gather(zf, 2, props.unsqueeze(-1).expand(t, GB, M * S1, nx)).view(t, GB, M, S1, nx)
+        props = props.view(t, GB, M, S1)
+        # the rows' cumulative weights shifted by the row number: one increasing table, so that one
+        # searchsorted draws for indices of any rows (the second round)
+        flat_cdf = (cdf + rows_offset).view(t, GB * L) if S2 else None
+        for i in range(t - 1, -1, -1):
+            J_next = Js[:, blk.start + i + 1].reshape(GB, M)
+            if nx == 1:
+                x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (GB, M, 1)
+                d = x_next - cand[i]
+                accept = log_u[i] < -(d * d)  # (GB, M, S1)
+            else:
+                x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(GB, M, nx))  # (GB, M, nx)
+                accept = log_u[i] < -squared_norm(x_next.unsqueeze(-2) - cand[i])
+            J, none = _first_accepted(props[i], accept, bits[-S1:])
+            b_idx, m_idx = torch.nonzero(none, as_tuple=True)
+            if b_idx.numel():
+                zf_i = zf[i].reshape(GB * L, nx)
+                xn = x_next[b_idx, m_idx]  # (P, nx)
+                left, S_r = S2, S1
+                while left and b_idx.numel():  # further rounds of tries, for these indices only
+                    S_r = min(left, 2 * S_r)  # doubling: the indices left accept less often
+                    left -= S_r
+                    P = b_idx.numel()
+                    u = torch.rand(2, P, S_r, dtype=X.dtype, device=device, generator=generator)
+                    row = b_idx.unsqueeze(-1)
+                    pos = torch.searchsorted(flat_cdf[i], u[0] + row.to(X.dtype), right=True)
+                    prop = (pos - row * L).clamp_(0, L - 1)
+                    c = zf_i[row * L + prop]  # (P, S_r, nx)
+                    accept = 2.0 * torch.log(u[1]) < -squared_norm(xn.unsqueeze(1) - c)
+                    J2, none2 = _first_accepted(prop, accept, bits[-S_r:])
+                    J[b_idx, m_idx] = J2
+                    q = torch.nonzero(none2).squeeze(-1)
+                    b_idx, m_idx, xn = b_idx[q], m_idx[q], xn[q]
+                if b_idx.numel():  # exact draws from the backward kernel
+                    d2 = squared_norm(xn.unsqueeze(1) - zf[i][b_idx])  # (P, L)
+                    J[b_idx, m_idx] = _draw(lw[i][b_idx] - 0.5 * d2, 1, generator)[:, 0]
+            if any_invalid[i]:  # past a sequence's end: restart from the filter
+                J = torch.where(valid[i].unsqueeze(-1), J, props[i, :, :, 0])
+            Js[:, blk.start + i] = J.view(G, B, M)
     return Js
+
+
+#: Rejection tries drawn for every index of :func:`backward_segments` before its loop; the rest of
+#: ``max_tries`` are drawn in the loop, in rounds of twice as many each, for the indices not
+#: settled yet.
+_FIRST_TRIES = 4
+
+
+def _first_accepted(props: Tensor, accept: Tensor, bits: Tensor) -> tuple[Tensor, Tensor]:
+    """The first accepted of the tries ``props`` ``(..., S)`` (``accept`` likewise), and where none was.
+
+    The first accepted is the highest bit of ``sum_s accept_s 2^(S-1-s)`` (``bits``, float64): a
+    small product and ``frexp``, ~10x cheaper than ``argmax`` on a CPU."""
+    S = props.shape[-1]
+    code = accept.to(bits.dtype) @ bits
+    tried = (S - torch.frexp(code).exponent).clamp_(0, S - 1)
+    return torch.gather(props, -1, tried.unsqueeze(-1).long()).squeeze(-1), code == 0
+
 
 #: The smoothers of the E-step, by name.
