@@ -581,10 +581,10 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
         s = c.mul_(1.0 / M)
         if not masked:
             scatter += step_scatter.sum(0)
-            torch.take(log_table, counts, out=log_ws[sl])
+            torch.index_select(log_table, 0, counts.view(-1), out=log_ws[sl].view(-1))
         else:
             scatter += torch.where(valid.view(t, B, 1, 1), step_scatter, 0.0).sum(0)
-            log_ws[sl] = torch.where(valid.unsqueeze(-1), torch.take(log_table, counts), logW[sl])
+            log_ws[sl] = torch.where(valid.unsqueeze(-1), log_table[counts], logW[sl])
             trans_w[sl] = torch.where(valid.unsqueeze(-1), s, 0.0)
             next_mean[sl] = xbar
     return SmootherOutput(log_ws, next_mean, trans_w, scatter)
