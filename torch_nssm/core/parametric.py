@@ -51,7 +51,22 @@ class LinearInParameters(nn.Module):
             p.copy_(theta[start : start + p.numel()].view_as(p))
             start += p.numel()
 
+    def predict(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
+        """``offset + Phi @ theta`` for parameters ``theta`` of shape ``(..., P)`` whose leading
+        dimensions broadcast against the rows' (``x`` ``(..., nx)``; e.g. ``(B, 1, 1, P)`` for one
+        parameter vector per sequence), shape ``(..., d)``.
+
+        The particle methods evaluate the modules through this method (once per time step for
+        ``B * L`` particles); a subclass may override it with the few operations its model needs
+        (``a * x + b * u``: 2 passes over the particles instead of building ``Phi`` and the zero
+        offset, 6), and must then return the same values.
+        """
+        Phi, offset = self.features(x, u)
+        return offset + linear_combination(Phi, theta.unsqueeze(-2))
+
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        if type(self).predict is not LinearInParameters.predict:  # the subclass's own evaluation
+            return self.predict(x, u, self.theta())
         return self._linear(x, u, self.theta().unsqueeze(-1))
 
     def _linear(self, x: Tensor, u: Tensor, theta_column: Tensor) -> Tensor:
@@ -69,6 +84,9 @@ class LinearInParameters(nn.Module):
         hooks = self._forward_hooks or self._forward_pre_hooks
         if type(self).forward is not LinearInParameters.forward or hooks:
             return self
+        if type(self).predict is not LinearInParameters.predict:  # the subclass's own evaluation
+            theta = self.theta()
+            return lambda x, u: self.predict(x, u, theta)
         theta_column = self.theta().unsqueeze(-1)
         return lambda x, u: self._linear(x, u, theta_column)
 

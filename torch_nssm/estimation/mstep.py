@@ -28,7 +28,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from .._ops import inverse_cholesky, linear_combination, time_blocks
+from .._ops import inverse_cholesky, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
@@ -187,8 +187,8 @@ def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, T
         thetas = torch.stack([m.theta().detach() for m in modules])  # (B, P)
 
         def linear(x: Tensor, u: Tensor) -> Tensor:
-            Phi, offset = template.features(x, u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1]))
-            return offset + linear_combination(Phi, thetas.view(1, thetas.shape[0], 1, 1, -1))
+            u = u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1])
+            return template.predict(x, u, thetas.view(1, thetas.shape[0], 1, -1))
 
         return linear
     if groups.shared:
