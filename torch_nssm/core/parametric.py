@@ -170,9 +170,11 @@ def linear_normal_equations(
         r = target[sl] - offset
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
-        if A.shape[-2] == 1:  # one output: the metric is a scalar weight
+        c2 = None
+        if A.shape[-2] == 1:  # one output: the metric is a scalar weight per (step, sequence)
             w = w[..., 0] if w.dim() == 4 else w
-            A, r, w = A[..., 0, :], r[..., 0], w * C[..., 0, 0] ** 2
+            # applied to the (t, B, F, F) products below, not to every row (one pass fewer)
+            A, r, c2 = A[..., 0, :], r[..., 0], C[..., 0, 0] ** 2  # c2: (t or 1, B, 1)
         else:
             # whitened components become rows of their own: (t, B, L * d, F) and (t, B, L * d)
             A = small_matmul(C, A).flatten(2, 3)
@@ -181,8 +183,11 @@ def linear_normal_equations(
         Aw = A * w.unsqueeze(-1)
         # per-(step, sequence) products over the particles, then a sum over steps: ~4x faster than
         # one einsum, which copies the block into sequence-major order first
-        G += (Aw.transpose(-1, -2) @ A).sum(0)
-        h += (Aw.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1).sum(0)
+        AwA, Awr = Aw.transpose(-1, -2) @ A, (Aw.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
+        if c2 is not None:
+            AwA, Awr = AwA * c2.unsqueeze(-1), Awr * c2
+        G += AwA.sum(0)
+        h += Awr.sum(0)
     return G, h
 
 
