@@ -93,8 +93,9 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
         noise = noise.transpose(0, 1)
     else:
         noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
-    if nx == 1:
-        torch.mul(noise, Cw.view(B, 1, 1), out=out)
+    if nx == 1:  # widened first: a product with a float32 (strided) operand was 4x slower (39 vs 11 ms
+        out.copy_(noise)  # at T = 1000, B = L = 100, one CPU thread)
+        out.mul_(Cw.view(B, 1, 1))
     else:
         torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
 
