@@ -164,7 +164,7 @@ def main(argv=None) -> int:
         print(json.dumps(_worker(impl, int(N), int(L), int(seg), int(ov), int(seed))))
         return 0
     if a.N:
-        configs = [(a.N, a.L, [0] + (a.segments or [1000]), a.overlap, False)]
+        configs = [(a.N, a.L, [0] + (a.segments or [1000]), a.overlap, a.N <= 2000)]  # the peer up to 2000
     else:
         configs = [(100_000, 100, [0, 1000, 500], 100, False), (2_000, 1_000, [0, 250, 125], 50, True)]
         if a.million:
