@@ -13,6 +13,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
+from .. import _workspace
 from .._ops import small_matmul
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MaskedScale, masked_scale
@@ -174,9 +175,9 @@ def particle_filter(
             raise ValueError(f"initial_particles must have shape ({B}, {L}, nx), got {tuple(x0.shape)}")
     nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
     # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
-    particles = torch.empty(T, B, L, nx, dtype=dtype, device=device)
-    log_weights = torch.empty(T, B, L, dtype=dtype, device=device)
-    ancestors = torch.empty(T, B, L, dtype=torch.long, device=device)
+    particles = _workspace.empty((T, B, L, nx), dtype, device)
+    log_weights = _workspace.empty((T, B, L), dtype, device)
+    ancestors = _workspace.empty((T, B, L), torch.long, device)
     particles[0] = x0
     arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange

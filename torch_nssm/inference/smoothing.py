@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _workspace
 from .._ops import inverse_cholesky, small_matmul, squared_norm, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from .filtering import FilterOutput
@@ -553,11 +554,11 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     M = Js.shape[-1]
     dtype, device = X.dtype, X.device
     all_valid = bool(trans.all())
-    log_ws, ws = torch.empty_like(logW), torch.empty_like(logW)
+    log_ws, ws = _workspace.empty((T, B, L), dtype, device), _workspace.empty((T, B, L), dtype, device)
     log_ws[-1] = logW[-1]
     torch.exp(logW[-1], out=ws[-1])
-    next_mean = torch.empty(T - 1, B, L, nx, dtype=dtype, device=device)
-    trans_w = torch.empty(T - 1, B, L, dtype=dtype, device=device)
+    next_mean = _workspace.empty((T - 1, B, L, nx), dtype, device)
+    trans_w = _workspace.empty((T - 1, B, L), dtype, device)
     scatter = torch.zeros(B, nx, nx, dtype=dtype, device=device)
     log_table = torch.log(torch.arange(M + 1, dtype=dtype, device=device) / M)  # log(c / M), -inf at 0
     one = torch.ones((1, 1, 1), dtype=dtype, device=device)
