@@ -215,10 +215,13 @@ def run_em(
         previous = last[groups[0]][0] if shared and last[groups[0]] is not None else None
         old = last[groups[0]][0] if last[groups[0]] is not None else None
         recycle, spare[0] = spare[0], None
+        size = (batch.data.n_sequences, est_options.n_particles)
+        if recycle is not None and tuple(recycle.filter.particles.shape[1:3]) != size:
+            recycle = None  # other sizes: freed before this E-step, not held through it
         est = e_step(batch.model, batch.data, est_options, gen, previous, records=False, recycle=recycle)
         for j, g in enumerate(groups):
             last[g] = (est, j)
-        if old is not None and all(entry is None or entry[0] is not old for entry in last):
+        if old is not None and old.windows is None and all(e is None or e[0] is not old for e in last):
             spare[0] = old  # its arrays are overwritten by the E-step after next (e_step's recycle)
         return batch
 
