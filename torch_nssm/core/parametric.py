@@ -51,7 +51,22 @@ class LinearInParameters(nn.Module):
             p.copy_(theta[start : start + p.numel()].view_as(p))
             start += p.numel()
 
+    def predict(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
+        """``offset + Phi @ theta`` for parameters ``theta`` of shape ``(..., P)`` whose leading
+        dimensions broadcast against the rows' (``x`` ``(..., nx)``; e.g. ``(B, 1, 1, P)`` for one
+        parameter vector per sequence), shape ``(..., d)``.
+
+        The particle methods evaluate the modules through this method (once per time step for
+        ``B * L`` particles); a subclass may override it with the few operations its model needs
+        (``a * x + b * u``: 2 passes over the particles instead of building ``Phi`` and the zero
+        offset, 6), and must then return the same values.
+        """
+        Phi, offset = self.features(x, u)
+        return offset + linear_combination(Phi, theta.unsqueeze(-2))
+
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        if type(self).predict is not LinearInParameters.predict:  # the subclass's own evaluation
+            return self.predict(x, u, self.theta())
         return self._linear(x, u, self.theta().unsqueeze(-1))
 
     def _linear(self, x: Tensor, u: Tensor, theta_column: Tensor) -> Tensor:
@@ -69,6 +84,9 @@ class LinearInParameters(nn.Module):
         hooks = self._forward_hooks or self._forward_pre_hooks
         if type(self).forward is not LinearInParameters.forward or hooks:
             return self
+        if type(self).predict is not LinearInParameters.predict:  # the subclass's own evaluation
+            theta = self.theta()
+            return lambda x, u: self.predict(x, u, theta)
         theta_column = self.theta().unsqueeze(-1)
         return lambda x, u: self._linear(x, u, theta_column)
 
@@ -152,9 +170,11 @@ def linear_normal_equations(
         r = target[sl] - offset
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
-        if A.shape[-2] == 1:  # one output: the metric is a scalar weight
+        c2 = None
+        if A.shape[-2] == 1:  # one output: the metric is a scalar weight per (step, sequence)
             w = w[..., 0] if w.dim() == 4 else w
-            A, r, w = A[..., 0, :], r[..., 0], w * C[..., 0, 0] ** 2
+            # applied to the (t, B, F, F) products below, not to every row (one pass fewer)
+            A, r, c2 = A[..., 0, :], r[..., 0], C[..., 0, 0] ** 2  # c2: (t or 1, B, 1)
         else:
             # whitened components become rows of their own: (t, B, L * d, F) and (t, B, L * d)
             A = small_matmul(C, A).flatten(2, 3)
@@ -163,8 +183,11 @@ def linear_normal_equations(
         Aw = A * w.unsqueeze(-1)
         # per-(step, sequence) products over the particles, then a sum over steps: ~4x faster than
         # one einsum, which copies the block into sequence-major order first
-        G += (Aw.transpose(-1, -2) @ A).sum(0)
-        h += (Aw.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1).sum(0)
+        AwA, Awr = Aw.transpose(-1, -2) @ A, (Aw.transpose(-1, -2) @ r.unsqueeze(-1)).squeeze(-1)
+        if c2 is not None:
+            AwA, Awr = AwA * c2.unsqueeze(-1), Awr * c2
+        G += AwA.sum(0)
+        h += Awr.sum(0)
     return G, h
 
 

@@ -300,6 +300,10 @@ class PaperTransition(LinearInParameters):
         Phi = torch.stack([x[..., 0], u[..., 0]], dim=-1).unsqueeze(-2)
         return Phi, torch.zeros_like(x)
 
+    def predict(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
+        """``a x + b u`` in two passes (:meth:`LinearInParameters.predict`)."""
+        return torch.addcmul(u * theta[..., 1:2], x, theta[..., 0:1])
+
     def extra_repr(self) -> str:
         return f"a={self.a.item():.6g}, b={self.b.item():.6g}"
 
@@ -332,6 +336,10 @@ class PaperObservation(LinearInParameters):
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi = [[cos x]]`` of shape ``(..., 1, 1)`` and a zero offset ``(..., 1)``."""
         return torch.cos(x).unsqueeze(-1), torch.zeros_like(x)
+
+    def predict(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
+        """``c cos(x)`` in two passes (:meth:`LinearInParameters.predict`)."""
+        return theta[..., 0:1] * torch.cos(x)
 
     def extra_repr(self) -> str:
         return f"c={self.c.item():.6g}"

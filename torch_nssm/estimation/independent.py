@@ -15,7 +15,6 @@ import torch
 from torch import Tensor, nn
 from torch.func import functional_call, stack_module_state, vmap
 
-from .._ops import linear_combination
 from ..core.model import StateSpaceModel
 from ..core.parametric import LinearInParameters
 
@@ -48,10 +47,9 @@ class StackedModule(nn.Module):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         template = self._template[0]
-        if self._theta is not None:  # features once, elementwise products: no batch of tiny matmuls
-            Phi, offset = template.features(x, u)  # (B, ..., d, P), (B, ..., d)
-            theta = self._theta.view(self._theta.shape[0], *([1] * (Phi.dim() - 2)), -1)
-            return offset + linear_combination(Phi, theta)
+        if self._theta is not None:  # elementwise products (LinearInParameters.predict): no tiny matmuls
+            theta = self._theta.view(self._theta.shape[0], *([1] * (x.dim() - 2)), -1)  # (B, 1, ..., P)
+            return template.predict(x, u, theta)
 
         def call(p, b, xb, ub):
             return functional_call(template, (p, b), (xb, ub))

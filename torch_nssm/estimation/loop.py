@@ -214,14 +214,23 @@ def run_em(
     n_obs = [sum(observed)] if shared else observed
     interrupted = False
 
+    spare: list[EStepOutput | None] = [None]  # an E-step output nothing reads any more
+
     def estep(groups: list[int], iteration: int | None) -> _Batch:
         batch = _Batch(groups, models, data, shared)
         est_options = replace(options.estep, n_particles=options.n_particles(iteration))
         gen = generator.select(groups) if isinstance(generator, SequenceStreams) else generator
         previous = last[groups[0]][0] if shared and last[groups[0]] is not None else None
-        est = e_step(batch.model, batch.data, est_options, gen, previous, records=False)
+        old = last[groups[0]][0] if last[groups[0]] is not None else None
+        recycle, spare[0] = spare[0], None
+        size = (batch.data.n_sequences, est_options.n_particles)
+        if recycle is not None and tuple(recycle.filter.particles.shape[1:3]) != size:
+            recycle = None  # other sizes: freed before this E-step, not held through it
+        est = e_step(batch.model, batch.data, est_options, gen, previous, records=False, recycle=recycle)
         for j, g in enumerate(groups):
             last[g] = (est, j)
+        if old is not None and old.windows is None and all(e is None or e[0] is not old for e in last):
+            spare[0] = old  # its arrays are overwritten by the E-step after next (e_step's recycle)
         return batch
 
     active = list(range(n_groups))

@@ -28,7 +28,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from .._ops import inverse_cholesky, linear_combination, time_blocks
+from .._ops import inverse_cholesky, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
@@ -187,8 +187,8 @@ def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, T
         thetas = torch.stack([m.theta().detach() for m in modules])  # (B, P)
 
         def linear(x: Tensor, u: Tensor) -> Tensor:
-            Phi, offset = template.features(x, u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1]))
-            return offset + linear_combination(Phi, thetas.view(1, thetas.shape[0], 1, 1, -1))
+            u = u.unsqueeze(2).expand(*x.shape[:-1], u.shape[-1])
+            return template.predict(x, u, thetas.view(1, thetas.shape[0], 1, -1))
 
         return linear
     if groups.shared:
@@ -256,6 +256,8 @@ def _update_modules(
 
 def _residuals(predict, problem: Regression, mask: Tensor | None = None):
     """Residuals ``target - predict(x, u)`` block by block (zero at missing components)."""
+    if mask is not None and bool(mask.all()):  # nothing missing: two passes per block fewer
+        mask = None
     for sl in problem.blocks():
         r = problem.target[sl] - predict(problem.x[sl], problem.u[sl])
         if mask is not None:
@@ -280,9 +282,16 @@ def transition_regression(Rw: Tensor, data: SequenceBatch, est: EStepOutput) -> 
 
 
 def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice], Tensor]:
-    """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed."""
+    """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed: the smoother's
+    ``weights`` where it has them (a view: not to be modified in place), else ``exp`` of its
+    log-weights."""
     observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
-    return lambda sl: torch.exp(est.smoother.log_weights[sl]) * observed[sl]
+    ws, log_ws = est.smoother.weights, est.smoother.log_weights
+    if bool(observed.all()):
+        return (lambda sl: ws[sl]) if ws is not None else (lambda sl: torch.exp(log_ws[sl]))
+    if ws is not None:
+        return lambda sl: ws[sl] * observed[sl]
+    return lambda sl: torch.exp(log_ws[sl]).mul_(observed[sl])
 
 
 def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:

@@ -13,6 +13,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
+from .. import _workspace
 from .._ops import small_matmul
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MaskedScale, masked_scale
@@ -93,8 +94,9 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
         noise = noise.transpose(0, 1)
     else:
         noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
-    if nx == 1:
-        torch.mul(noise, Cw.view(B, 1, 1), out=out)
+    if nx == 1:  # widened first: a product with a float32 (strided) operand was 4x slower (39 vs 11 ms
+        out.copy_(noise)  # at T = 1000, B = L = 100, one CPU thread)
+        out.mul_(Cw.view(B, 1, 1))
     else:
         torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
 
@@ -173,9 +175,9 @@ def particle_filter(
             raise ValueError(f"initial_particles must have shape ({B}, {L}, nx), got {tuple(x0.shape)}")
     nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
     # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
-    particles = torch.empty(T, B, L, nx, dtype=dtype, device=device)
-    log_weights = torch.empty(T, B, L, dtype=dtype, device=device)
-    ancestors = torch.empty(T, B, L, dtype=torch.long, device=device)
+    particles = _workspace.empty((T, B, L, nx), dtype, device)
+    log_weights = _workspace.empty((T, B, L), dtype, device)
+    ancestors = _workspace.empty((T, B, L), torch.long, device)
     particles[0] = x0
     arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange

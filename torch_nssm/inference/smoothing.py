@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .. import _workspace
 from .._ops import inverse_cholesky, small_matmul, squared_norm, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from .filtering import FilterOutput
@@ -70,12 +71,18 @@ class SmootherOutput:
     residual_scatter : Tensor, shape (B, nx, nx)
         The parameter-free part of the process-noise scatter,
         ``sum_k [S_{k+1} - sum_i m_k^i m_k^i^T / s_k^i]`` (docs/method.md §7: it must not be dropped).
+    weights : Tensor, shape (T, B, L), optional
+        ``exp(log_weights)``, where the smoother has it exactly at no cost (the trajectory
+        smoothers: counts over ``M``); the M-step reads it instead of taking ``exp`` of the
+        log-weights twice per pass (``exp`` of the many ``-inf`` is ~3x slower than of a finite
+        value on a CPU).  ``None``: take ``exp(log_weights)``.
     """
 
     log_weights: Tensor
     next_mean: Tensor
     transition_weights: Tensor
     residual_scatter: Tensor
+    weights: Tensor | None = None
 
     def select(self, index) -> SmootherOutput:
         """The smoother output of the sequences ``index``."""
@@ -84,6 +91,7 @@ class SmootherOutput:
             self.next_mean[:, index],
             self.transition_weights[:, index],
             self.residual_scatter[index],
+            None if self.weights is None else self.weights[:, index],
         )
 
 
@@ -541,43 +549,64 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     """The smoother output from the trajectories' indices ``Js`` ``(T, B, M)``, by counts.
 
     Computed after the backward pass, for blocks of time steps at once (a dozen operations per
-    block instead of per step; the blocks keep the temporaries in cache).
+    block instead of per step; the blocks keep the temporaries in cache).  Each particle's count
+    ``c`` (trajectories through it) and the sum ``q`` of its trajectories' next states give
+    ``s = c / M``, ``xbar = q / c`` and ``sum_i s_i xbar_i xbar_i^T = sum_i q_i xbar_i^T / M``.
+    Measured on one CPU thread at B = 100, L = M = 100 (4x faster than taking ``log s`` and
+    masking with ``where``): ``log s`` is read from a table of ``log(c / M)`` (``log 0 = -inf``
+    costs ~8 ns an entry, a finite ``log`` ~2 ns, a table lookup ~1 ns), and the particles no
+    trajectory visits (``c = 0``, where ``xbar`` is the particle itself) are selected by
+    ``(1 - c)^+`` arithmetic instead of ``torch.where`` (~3 ns an entry with a random mask).
     """
     T, B, L, nx = X.shape
     M = Js.shape[-1]
+    dtype, device = X.dtype, X.device
     all_valid = bool(trans.all())
-    log_ws = torch.empty_like(logW)
+    log_ws, ws = _workspace.empty((T, B, L), dtype, device), _workspace.empty((T, B, L), dtype, device)
     log_ws[-1] = logW[-1]
-    next_mean = torch.empty(T - 1, B, L, nx, dtype=X.dtype, device=X.device)
-    trans_w = torch.empty(T - 1, B, L, dtype=X.dtype, device=X.device)
-    scatter = torch.zeros(B, nx, nx, dtype=X.dtype, device=X.device)
+    torch.exp(logW[-1], out=ws[-1])
+    next_mean = _workspace.empty((T - 1, B, L, nx), dtype, device)
+    trans_w = _workspace.empty((T - 1, B, L), dtype, device)
+    scatter = torch.zeros(B, nx, nx, dtype=dtype, device=device)
+    log_table = torch.log(torch.arange(M + 1, dtype=dtype, device=device) / M)  # log(c / M), -inf at 0
+    one = torch.ones((1, 1, 1), dtype=dtype, device=device)
     for sl in time_blocks(T - 1, B * max(L, M)):
         t = sl.stop - sl.start
         J, valid = Js[sl], trans[sl]  # (t, B, M), (t, B)
         J_next = Js[sl.start + 1 : sl.stop + 1]
-        x_next = torch.gather(
-            X[sl.start + 1 : sl.stop + 1], 2, J_next.unsqueeze(-1).expand(t, B, M, nx)
-        )  # (t, B, M, nx)
-        s = torch.zeros(t, B, L, dtype=X.dtype, device=X.device).scatter_add_(
-            2, J, torch.full((1, 1, 1), 1.0 / M, dtype=X.dtype, device=X.device).expand(t, B, M)
-        )
-        m = torch.zeros(t, B, L, nx, dtype=X.dtype, device=X.device).scatter_add_(
-            2, J.unsqueeze(-1).expand(t, B, M, nx), x_next / M
-        )
-        pos = s > 0
-        xbar = torch.where(pos.unsqueeze(-1), m / torch.where(pos, s, 1.0).unsqueeze(-1), X[sl])
-        S_next = (x_next.transpose(-1, -2) @ x_next) / M  # (t, B, nx, nx)
-        MmT = (s.unsqueeze(-1) * xbar).transpose(-1, -2) @ xbar
-        if all_valid or bool(valid.all()):  # nothing to mask in this block
-            scatter += (S_next - MmT).sum(0)
-            torch.log(s, out=log_ws[sl])
-            trans_w[sl] = s
+        X_next, X_here = X[sl.start + 1 : sl.stop + 1], X[sl]
+        masked = not (all_valid or bool(valid.all()))
+        # written straight into the outputs where nothing is masked (no copies of the block)
+        c = torch.zeros(t, B, L, dtype=dtype, device=device) if masked else trans_w[sl].zero_()
+        c.scatter_add_(2, J, one.expand(t, B, M))
+        unvisited = torch.rsub(c, 1.0).clamp_(min=0.0)  # 1 where c = 0, else 0 (c is an integer)
+        xbar = torch.empty(t, B, L, nx, dtype=dtype, device=device) if masked else next_mean[sl]
+        if nx == 1:
+            x_next = torch.gather(X_next[..., 0], 2, J_next)  # (t, B, M)
+            q = torch.zeros(t, B, L, dtype=dtype, device=device).scatter_add_(2, J, x_next)
+            torch.addcmul(q, X_here[..., 0], unvisited, out=xbar[..., 0])
+            xbar[..., 0].div_(unvisited.add_(c))  # c + (c = 0): max(c, 1)
+            step_scatter = (x_next.square().sum(-1) - (q * xbar[..., 0]).sum(-1)).view(t, B, 1, 1) / M
         else:
-            scatter += torch.where(valid.view(t, B, 1, 1), S_next - MmT, 0.0).sum(0)
-            log_ws[sl] = torch.where(valid.unsqueeze(-1), torch.log(s), logW[sl])
+            x_next = torch.gather(X_next, 2, J_next.unsqueeze(-1).expand(t, B, M, nx))  # (t, B, M, nx)
+            q = torch.zeros(t, B, L, nx, dtype=dtype, device=device)
+            q.scatter_add_(2, J.unsqueeze(-1).expand(t, B, M, nx), x_next)
+            torch.addcmul(q, X_here, unvisited.unsqueeze(-1), out=xbar)
+            xbar.div_(unvisited.add_(c).unsqueeze(-1))
+            step_scatter = (x_next.transpose(-1, -2) @ x_next - q.transpose(-1, -2) @ xbar) / M
+        counts = c.long()
+        s = c.mul_(1.0 / M)
+        if not masked:
+            scatter += step_scatter.sum(0)
+            torch.index_select(log_table, 0, counts.view(-1), out=log_ws[sl].view(-1))
+            ws[sl] = s
+        else:
+            scatter += torch.where(valid.view(t, B, 1, 1), step_scatter, 0.0).sum(0)
+            log_ws[sl] = torch.where(valid.unsqueeze(-1), log_table[counts], logW[sl])
+            ws[sl] = torch.where(valid.unsqueeze(-1), s, torch.exp(logW[sl]))
             trans_w[sl] = torch.where(valid.unsqueeze(-1), s, 0.0)
-        next_mean[sl] = xbar
-    return SmootherOutput(log_ws, next_mean, trans_w, scatter)
+            next_mean[sl] = xbar
+    return SmootherOutput(log_ws, next_mean, trans_w, scatter, ws)
 
 
 @torch.no_grad()

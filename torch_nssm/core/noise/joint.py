@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ... import _workspace
 from ..._ops import small_matmul, squared_norm
 from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, symmetric_pd
 
@@ -20,7 +21,7 @@ class SquaredNormEvaluator(NoiseEvaluator):
     def __init__(self, const: Tensor, n_particles: int):
         T, B = const.shape
         self.const = const
-        self.statistics = torch.empty(T, B, n_particles, dtype=const.dtype, device=const.device)
+        self.statistics = _workspace.empty((T, B, n_particles), const.dtype, const.device)
         # views of every step, made once (indexing a list is free, a tensor select is an operation)
         self._delta2 = self.statistics.unbind(0)
         self._delta2_col = self.statistics.unsqueeze(-1).unbind(0)
