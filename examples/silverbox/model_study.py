@@ -186,12 +186,14 @@ def main(argv=None) -> None:
     p.add_argument("--neural", action="store_true", help=f"also {BEST} + MLP(16)")
     p.add_argument("--em", default=None, help="EM (clean and 5 %% outliers) from this structure's fit")
     p.add_argument("--outliers", action="store_true", help="structures on data with 5 %% outliers too")
+    p.add_argument("--skip-clean", action="store_true", help="with --outliers: the outlier data only")
     p.add_argument("--segment-length", type=int, default=None, help="EM's segment_length (long records)")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
     names = a.only or list(STRUCTURES)
     print(HEADER, flush=True)
-    for label, fraction in (("clean", 0.0),) + ((("5 % outliers", 0.05),) if a.outliers else ()):
+    settings = (("clean", 0.0),) + ((("5 % outliers", 0.05),) if a.outliers else ())
+    for label, fraction in settings[1:] if a.outliers and a.skip_clean else settings:
         data = prepare_silverbox(n_train=a.n_train, outlier_fraction=fraction, random_state=0)
         score = Scorer(data)
         base, seconds = duffing_fit(data)
