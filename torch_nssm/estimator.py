@@ -584,12 +584,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             base, n_runs = self._fitted_model(device), 1
         else:
             base, n_runs = self._initial_model(data, device), self.n_init
-        staged = None
+        staged = staged_run = None
         if not warm:
             self.first_stage_ = None
         if not warm and self._runs_first_stage(base):
-            base = self._first_stage(base, data)
-            staged = _copy_model(base) if self.first_stage_.accepted else None
+            base, staged_run = self._first_stage(base, data)
+            staged = _copy_model(base) if staged_run is not None else None
         limit = _divergence_limit(base, data, warn=not warm)
         seeds = _restart_seeds(self.random_state, n_runs)
         n_workers = min(n_runs, _parallel.effective_n_jobs(self.n_jobs))
@@ -628,7 +628,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
         if staged is not None:
             best, free_run_outputs = self._keep_the_simulation(
-                staged, best, free_run_outputs, data, seeds[0], limit, device
+                staged, staged_run, best, free_run_outputs, data, seeds[0], limit, device
             )
         self._store_run(best, data, multi, warm, y_1d, init_lls)
         message = self._rejection_message(best)
@@ -680,45 +680,45 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             return self.n_iter > 0 and first_stage_applies(start)
         return self.first_stage == "simulation"
 
-    def _first_stage(self, base: StateSpaceModel, data: SequenceBatch) -> StateSpaceModel:
-        """The start after the robust simulation-error fit (``first_stage_`` says what it did)."""
+    def _first_stage(
+        self, base: StateSpaceModel, data: SequenceBatch
+    ) -> tuple[StateSpaceModel, tuple | None]:
+        """The start after the robust simulation-error fit (``first_stage_`` says what it did), and
+        the noise-free simulation ``(states, outputs)`` of that start if the first stage was kept."""
         given = _copy_model(base)
         report = simulation_error_fit(base, data, segment_length=FIRST_STAGE_WINDOW)
         self.first_stage_ = report
         if report.accepted:
             starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
             staged = replace(base, x0_mean=starts.mean(0))
-            outputs = prediction.free_run(staged, data.u)[1]
+            run = prediction.free_run(staged, data.u)
             yt = torch.cat(data.unpad(data.y)).cpu().numpy()
-            report.explained = float(robust_r2_score(yt, torch.cat(data.unpad(outputs)).cpu().numpy()))
-            if self.first_stage == "auto" and not report.explained >= SIMULATION_R2_FLOOR:
-                # the process noise dominates y: a simulation-error fit is no guide to the parameters
-                # (the paper's example: robust R² 0.47-0.65 at the true values, and the first stage
-                # can land in a wrong basin), so EM starts from the given values
-                report.accepted = False
-                report.first_states = None
-                return given
-        if not report.accepted and self.first_stage == "auto":  # the given start is as good: no news
-            return given
-        if not report.accepted:
+            report.explained = float(robust_r2_score(yt, torch.cat(data.unpad(run[1])).cpu().numpy()))
+            if self.first_stage != "auto" or report.explained >= SIMULATION_R2_FLOOR:
+                return staged, run
+            # the process noise dominates y: a simulation-error fit is no guide to the parameters
+            # (the paper's example: robust R² 0.47-0.65 at the true values, and the first stage can
+            # land in a wrong basin), so EM starts from the given values
+            report.accepted = False
+            report.first_states = None
+        elif self.first_stage != "auto":  # "auto": the given start is as good, no news
             warnings.warn(
                 "the first stage (robust simulation-error fit) did not improve the start; EM starts "
                 "from the given values",
                 RuntimeWarning,
                 stacklevel=4,
             )
-            return base
-        starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
-        return replace(base, x0_mean=starts.mean(0))
+        return given, None
 
     def _keep_the_simulation(
-        self, staged: StateSpaceModel, best: EMResult, free_run_outputs: torch.Tensor, data, seed, limit,
-        device,
+        self, staged: StateSpaceModel, staged_run: tuple, best: EMResult, free_run_outputs: torch.Tensor,
+        data, seed, limit, device,
     ) -> tuple[EMResult, torch.Tensor]:
-        """Compare the EM fit's free run with the first stage's; under ``fit_Rw="auto"``, when EM
-        made it more than 10 % worse, run EM again from the first stage with the process noise held
-        small and keep the run that simulates better.  Returns the kept run and its free-run outputs."""
-        before = _free_run_scale(prediction.free_run(staged, data.u)[1], data)
+        """Compare the EM fit's free run with the first stage's (``staged_run``: its states and
+        outputs); under ``fit_Rw="auto"``, when EM made it more than 10 % worse, run EM again from
+        the first stage with the process noise held small and keep the run that simulates better.
+        Returns the kept run and its free-run outputs."""
+        before = _free_run_scale(staged_run[1], data)
         after = _free_run_scale(free_run_outputs, data)
         self.first_stage_.free_run_scale_before_em = before
         self.first_stage_.free_run_scale_after_em = after
@@ -737,7 +737,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 stacklevel=4,
             )
             return best, free_run_outputs
-        Rw = held_process_noise(staged, data)
+        Rw = held_process_noise(staged_run[0], data)
         held = _restart(self, replace(staged, Rw=Rw), data, 0, seed, limit, device, True, fit_Rw=False)
         outputs = prediction.free_run(held.model, data.u)[1] if held.estep is not None else None
         scale = _free_run_scale(outputs, data) if outputs is not None else math.nan
@@ -1374,7 +1374,7 @@ def _fit_chunk(
             estimators.append(est_b)
             start = est_b._initial_model(data_b, device)
             if est_b._runs_first_stage(start):  # per data set, before the batched EM
-                start = est_b._first_stage(start, data_b)
+                start = est_b._first_stage(start, data_b)[0]
             models.append(start)
         all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
         n = len(indices)

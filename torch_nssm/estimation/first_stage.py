@@ -85,13 +85,12 @@ def first_stage_applies(model: StateSpaceModel) -> bool:
     return not any(isinstance(sub, NETWORK_LAYERS) for m in modules for sub in m.modules())
 
 
-def held_process_noise(model: StateSpaceModel, data: SequenceBatch, relative: float = 1e-6) -> Tensor:
+def held_process_noise(states: Tensor, data: SequenceBatch, relative: float = 1e-6) -> Tensor:
     """A small process-noise covariance for a simulation model: ``relative`` times the variance of
-    each state along ``model``'s noise-free simulation of ``data`` (diagonal), floored at
-    ``relative`` times the largest of them (and at ``1e-300``) so that no state is noise-free."""
-    with torch.no_grad():
-        states, _ = free_run(model, data.u)  # (T, B, nx)
-    x = torch.cat(data.unpad(states))  # (n, nx)
+    each state along a noise-free simulation ``states`` ``(T, B, nx)`` of ``data`` (diagonal),
+    floored at ``relative`` times the largest of them (and at ``1e-300``) so that no state is
+    noise-free."""
+    x = torch.cat(data.unpad(states.detach()))  # (n, nx)
     var = x.var(0) if x.shape[0] > 1 else torch.ones_like(x[0])
     var = torch.where(torch.isfinite(var), var, torch.ones_like(var))
     floor = torch.clamp(var.max() * relative, min=1e-300)

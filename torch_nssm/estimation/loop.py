@@ -291,42 +291,37 @@ def run_em(
                     histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
                 models[g] = new
                 still.append(g)
-            em_step = None
+            newton = None  # while the Newton step replaces the M-step's: the M-step's, to go back to
             if at is not None and still:
-                if any(report[label].rejected for report in result.reports for label in ("f", "g")):
-                    step = None
-                else:
+                if not any(report[label].rejected for report in result.reports for label in ("f", "g")):
                     em_step = _snapshot(models[0])
                     step = newton_step(at, models[0], previous_step, max_factor)
                     if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
                         max_factor /= 2.0
                     accelerating = not step.done and max_factor >= 2.0
-                    previous_step = step.delta if step.taken else previous_step
-                histories[0]["accelerated"].append(bool(step is not None and step.taken))
+                    if step.taken:
+                        newton, previous_step = em_step, step.delta
+                histories[0]["accelerated"].append(newton is not None)
             if still:
                 try:
                     batch = estep(still, it + 1)
-                    if em_step is not None and histories[0]["accelerated"][-1]:
-                        drop = lls[0][-1] - float(last[0][0].log_likelihood.sum())
-                        if drop > newton_tolerance(n_obs[0]):  # the Newton step lost likelihood: undo it
-                            models[0], accelerating = _restore(em_step), False
-                            histories[0]["accelerated"][-1] = False
-                            batch = estep(still, it + 1)
+                    lost = newton is not None and (
+                        lls[0][-1] - float(last[0][0].log_likelihood.sum()) > newton_tolerance(n_obs[0])
+                    )
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
-                    batch, failure = None, str(exc)
-                    if em_step is not None and histories[0]["accelerated"][-1]:
-                        # the Newton step failed where the EM step may not: take that, EM from here
-                        models[0], accelerating = _restore(em_step), False
-                        histories[0]["accelerated"][-1] = False
-                        try:
-                            batch = estep(still, it + 1)
-                        except (NumericalError, torch.linalg.LinAlgError) as again:
-                            failure = str(again)
-                    if batch is None:
-                        for g in still:
-                            models[g] = _restore(snapshots[g])
-                            errors[g] = f"EM stopped at iteration {it + 1}: {failure}"
-                        still = []
+                    batch, failure, lost = None, str(exc), newton is not None
+                if lost:  # the Newton step lost likelihood or failed: the M-step's instead, EM from here
+                    models[0], accelerating = _restore(newton), False
+                    histories[0]["accelerated"][-1] = False
+                    try:
+                        batch = estep(still, it + 1)
+                    except (NumericalError, torch.linalg.LinAlgError) as exc:
+                        batch, failure = None, str(exc)
+                if batch is None:
+                    for g in still:
+                        models[g] = _restore(snapshots[g])
+                        errors[g] = f"EM stopped at iteration {it + 1}: {failure}"
+                    still = []
             for g in still:
                 n_done[g] += 1
             active = still
