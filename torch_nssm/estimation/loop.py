@@ -21,7 +21,7 @@ import torch
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
 from ..inference.random import SequenceStreams
-from .acceleration import MAX_FACTOR, information_at, newton_step, newton_tolerance
+from .acceleration import MAX_FACTOR, NoiseExtrapolation, information_at, newton_step, newton_tolerance
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
@@ -50,8 +50,8 @@ class EMOptions:
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
     acceleration : {None, "newton"}
         ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
-        information, until a step is within one standard error (:mod:`.acceleration`; single fits
-        with an exact E-step only).
+        information, until a step is within one standard error, and squared extrapolation of the
+        noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
     progress : str or None
         Description of a progress bar (``None``: no bar).
@@ -237,6 +237,7 @@ def run_em(
     snapshots: dict[int, tuple] = {}
     accelerating = options.acceleration == "newton" and shared and options.estep.segment_length is None
     previous_step, max_factor = None, MAX_FACTOR  # the last Newton step taken, the cap of the next
+    extrapolation = NoiseExtrapolation(options.mstep.dof_bounds, n_obs[0]) if accelerating else None
     if accelerating:
         histories[0]["accelerated"] = []
     bar = _progress_bar(options.n_iter, options.progress)
@@ -247,6 +248,8 @@ def run_em(
             for g in active:
                 errors[g] = f"EM could not start: the E-step failed at the initial parameters: {exc}"
             active = []
+        if extrapolation is not None and active:
+            extrapolation.start(models[0])
         for it in range(options.n_iter + 1):
             if not active:
                 break
@@ -298,10 +301,24 @@ def run_em(
                     step = newton_step(at, models[0], previous_step, max_factor)
                     if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
                         max_factor /= 2.0
-                    accelerating = not step.done and max_factor >= 2.0
+                    # within one standard error given the noise ends the Newton steps only once
+                    # the noise has settled: its convergence moves f's and g's maximum
+                    settled = extrapolation is None or not extrapolation.moves(models[0])
+                    accelerating = not (step.done and settled) and max_factor >= 2.0
                     if step.taken:
                         newton, previous_step = em_step, step.delta
                 histories[0]["accelerated"].append(newton is not None)
+            if extrapolation is not None and still:
+                rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
+                extrapolated = extrapolation.propose(models[0], rejected)
+                if extrapolated is not None:
+                    newton = _snapshot(models[0]) if newton is None else newton  # the M-step's
+                    models[0] = extrapolated
+                flags = histories[0]["accelerated"]
+                if at is not None:  # the Newton branch has flagged this iterate
+                    flags[-1] = flags[-1] or extrapolated is not None
+                else:
+                    flags.append(extrapolated is not None)
             if still:
                 try:
                     batch = estep(still, it + 1)
@@ -310,9 +327,13 @@ def run_em(
                     )
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
                     batch, failure, lost = None, str(exc), newton is not None
-                if lost:  # the Newton step lost likelihood or failed: the M-step's instead, EM from here
-                    models[0], accelerating = _restore(newton), False
+                if lost:  # the accelerated step lost likelihood or failed: the M-step's instead
+                    # one estimate is noisy (sd of a few units): a shorter cap, not the end
+                    models[0], max_factor = _restore(newton), max_factor / 2.0
+                    accelerating = accelerating and max_factor >= 2.0
                     histories[0]["accelerated"][-1] = False
+                    if extrapolation is not None:  # the noise: shorter jumps, a new cycle at the M-step's
+                        extrapolation.undone(models[0])
                     try:
                         batch = estep(still, it + 1)
                     except (NumericalError, torch.linalg.LinAlgError) as exc:
