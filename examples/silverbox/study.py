@@ -463,8 +463,8 @@ def silverbox_study(
     n_train : int, default=3000
         Training segment length (multisine samples ``[start, start + n_train)``).  EM costs
         ``O(n_train * n_particles^2)`` per iteration with ``smoother="ffbsm"``: with the defaults
-        about a minute per fit and 7 minutes for the six fits on one core of a small machine
-        (the whole multisine part, 90k samples, would take about 30 times longer).
+        20-30 s per fit and 2-3 minutes for the six fits on one core of a small machine (measured
+        2026-11-25 under load; the whole multisine part, 90k samples, takes about 30 times longer).
     start : int, default=0
         Start of the segment within the multisine part.
     outlier_fraction : float, default=0.05
