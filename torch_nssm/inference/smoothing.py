@@ -463,24 +463,15 @@ def ffbsi(
         limits = [n - 1 for n in data.lengths.tolist()]  # steps with a transition
         n_mcmc, n_reject = M * mcmc_steps, (2 * max_tries + 1) * M
     for blk in reversed(list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))):
-        t = blk.stop - blk.start
         zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
         if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
             n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
             draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), dtype, reverse=True)
         if method == "mcmc":
-            if streams is None:
-                props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
-                u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
-            else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
-                d = draws.view(B, t, 2, n_mcmc)
-                cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
-                u = d[:, :, 0].reshape(B * t, n_mcmc).contiguous()  # strided: inverse_cdf 3x slower
-                props = inverse_cdf(cdf, u).view(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
-                u = d[:, :, 1].reshape(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
-            log_us = torch.log(u)  # time-major (each step's rows contiguous), reversed with streams
-        else:
-            cdfs = cumulative_weights(logW[blk])  # (t, B, L)
+            pre = (draws, J_last) if streams is not None else (None, None)
+            _mcmc_block(Js, blk, zf, zx, filt.ancestors, logW, trans, all_valid, mcmc_steps, generator, *pre)
+            continue
+        cdfs = cumulative_weights(logW[blk])  # (t, B, L)
         for k in range(blk.stop - 1, blk.start - 1, -1):
             i = k - blk.start
             J_next = Js[k + 1]
@@ -488,28 +479,98 @@ def ffbsi(
                 x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (B, M, 1)
             else:
                 x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
-            if method == "mcmc":
-                parent = torch.gather(filt.ancestors[k + 1], 1, J_next)
-                if streams is None:
-                    J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
-                    restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
-                else:
-                    j = blk.stop - 1 - k
-                    J = _independent_mh(parent, zf[i], x_next, props[j], log_us[j])
-            else:
-                pre = None if streams is None else draws[:, blk.stop - 1 - k]
-                J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
-                restart = None
-            if streams is not None:
-                restart = J_last
+            pre = None if streams is None else draws[:, blk.stop - 1 - k]
+            J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
             if not all_valid[k]:
                 # Rows past a sequence's end restart from the filter (their transitions are masked out).
-                if restart is None:
+                if streams is not None:
+                    restart = J_last
+                else:
                     u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
                     restart = inverse_cdf(cdfs[i], u)
                 J = torch.where(trans[k].unsqueeze(-1), J, restart)
             Js[k] = J
     return _trajectory_statistics(X, logW, Js, trans)
+
+
+def _mcmc_block(
+    Js: Tensor,
+    blk: slice,
+    zf: Tensor,
+    zx: Tensor,
+    ancestors: Tensor,
+    logW: Tensor,
+    trans: Tensor,
+    all_valid: list,
+    steps: int,
+    generator,
+    draws: Tensor | None,
+    J_last: Tensor | None,
+) -> None:
+    """The MCMC backward pass over the steps ``blk`` (in reverse), writing ``Js[blk]``.
+
+    Everything that does not depend on the trajectories is made for the whole block before its
+    loop: the proposals from the filter weights, their whitened predictions ``z_f`` (``cand``),
+    ``2 log u`` and, for every particle ``j`` at ``k + 1``, the squared distance ``d0_j`` to its
+    genealogical parent's prediction, so that a trajectory's starting distance is one lookup.
+    Per step: three lookups by the trajectories' indices at ``k + 1`` (``z_x``, the parent,
+    ``d0``) and the Metropolis-Hastings test, the same operations on the same numbers as
+    :func:`_independent_mh` (the same indices bit for bit).  ``draws`` (per-sequence streams):
+    the block's uniforms ``(B, t, 2 S M)`` in reverse time (row ``j``: step ``blk.stop - 1 - j``),
+    each row's ``S M`` proposal uniforms then ``S M`` acceptance uniforms; padded rows restart at
+    ``J_last``.  Without streams they are drawn from ``generator`` in time order.
+    """
+    t = blk.stop - blk.start
+    B, L, nx = zf.shape[1:]
+    M = Js.shape[-1]
+    A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
+    if draws is None:
+        props = _proposals(logW[blk], M, steps, generator)  # (t, B, S, M)
+        u = torch.rand(t, B, steps, M, dtype=zf.dtype, device=zf.device, generator=generator)
+    else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
+        n = steps * M
+        d = draws.view(B, t, 2, n)
+        cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
+        u = d[:, :, 0].reshape(B * t, n).contiguous()  # strided: inverse_cdf 3x slower
+        props = inverse_cdf(cdf, u).view(B, t, steps, M).transpose(0, 1).contiguous()
+        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).contiguous()
+        # the block's arrays in the same reversed order (row j: step blk.stop - 1 - j)
+        zf, zx, A_next = zf.flip(0), zx.flip(0), A_next.flip(0)
+    thr = torch.log(u).mul_(2.0)  # accept where 2 log u < d - d_prop (time-major)
+    idx = props.view(t, B, steps * M)
+    if nx == 1:
+        zf1, zx1 = zf[..., 0], zx[..., 0]
+        cand = torch.gather(zf1, 2, idx).view(t, B, steps, M)
+        d0 = zx1 - torch.gather(zf1, 2, A_next)
+        d0 = d0 * d0
+    else:
+        cand = torch.gather(zf, 2, idx.unsqueeze(-1).expand(t, B, steps * M, nx)).view(t, B, steps, M, nx)
+        d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
+    for k in range(blk.stop - 1, blk.start - 1, -1):
+        j = k - blk.start if draws is None else blk.stop - 1 - k
+        J_next = Js[k + 1]
+        J = torch.gather(A_next[j], 1, J_next)  # the genealogical parents
+        d = torch.gather(d0[j], 1, J_next)  # their squared distances
+        if nx == 1:
+            x_next = torch.gather(zx1[j], 1, J_next)  # (B, M)
+        else:
+            x_next = torch.gather(zx[j], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+        for s in range(steps):
+            if nx == 1:
+                d_prop = x_next - cand[j, :, s]
+                d_prop = d_prop * d_prop
+            else:
+                d_prop = squared_norm(x_next - cand[j, :, s])
+            accept = thr[j, :, s] < d - d_prop
+            J = torch.where(accept, props[j, :, s], J)
+            if s + 1 < steps:
+                d = torch.where(accept, d_prop, d)
+        if not all_valid[k]:
+            # Rows past a sequence's end restart from the filter (their transitions are masked out):
+            # an i.i.d. draw from the filter, or each sequence's draw at its last step (streams).
+            restart = props[j, :, 0] if draws is None else J_last
+            J = torch.where(trans[k].unsqueeze(-1), J, restart)
+        Js[k] = J
 
 
 def _reject(
