@@ -542,6 +542,7 @@ def _mcmc_block(
     B, L, nx = zf.shape[1:]
     M = Js.shape[-1]
     A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
+    zf_r = zf
     if draws is None:
         props = _proposals(logW[blk], M, steps, generator)  # (t, B, S, M)
         u = torch.rand(t, B, steps, M, dtype=zf.dtype, device=zf.device, generator=generator)
@@ -552,29 +553,30 @@ def _mcmc_block(
         u = d[:, :, 0].reshape(B * t, n).contiguous()  # strided: inverse_cdf 3x slower
         props = inverse_cdf(cdf, u).view(B, t, steps, M).transpose(0, 1).contiguous()
         u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1)  # viewed: read by the log below
-        # the block's arrays in the same reversed order (row j: step blk.stop - 1 - j)
-        zf, zx, A_next = zf.flip(0), zx.flip(0), A_next.flip(0)
+        zf_r = zf.flip(0)  # the predictions in the proposals' reversed order, for their lookup
     # accept where 2 log u < d - d_prop; time-major and contiguous (a strided threshold made the
     # loop's comparisons slower than the copy it saves)
     thr = torch.log(u, out=torch.empty(t, B, steps, M, dtype=u.dtype, device=u.device)).mul_(2.0)
+    # row i of the block's arrays: step blk.start + i; of the proposals' (props, thr, cand): row j
     idx = props.view(t, B, steps * M)
     if nx == 1:
         zf1, zx1 = zf[..., 0], zx[..., 0]
-        cand = torch.gather(zf1, 2, idx).view(t, B, steps, M)
+        cand = torch.gather(zf_r[..., 0], 2, idx).view(t, B, steps, M)
         d0 = zx1 - torch.gather(zf1, 2, A_next)
         d0 = d0 * d0
     else:
-        cand = torch.gather(zf, 2, idx.unsqueeze(-1).expand(t, B, steps * M, nx)).view(t, B, steps, M, nx)
+        cand = torch.gather(zf_r, 2, idx.unsqueeze(-1).expand(t, B, steps * M, nx)).view(t, B, steps, M, nx)
         d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
     for k in range(blk.stop - 1, blk.start - 1, -1):
-        j = k - blk.start if draws is None else blk.stop - 1 - k
-        J_next = Js[k - blk.start + 1]
-        J = torch.gather(A_next[j], 1, J_next)  # the genealogical parents
-        d = torch.gather(d0[j], 1, J_next)  # their squared distances
+        i = k - blk.start
+        j = i if draws is None else blk.stop - 1 - k
+        J_next = Js[i + 1]
+        J = torch.gather(A_next[i], 1, J_next)  # the genealogical parents
+        d = torch.gather(d0[i], 1, J_next)  # their squared distances
         if nx == 1:
-            x_next = torch.gather(zx1[j], 1, J_next)  # (B, M)
+            x_next = torch.gather(zx1[i], 1, J_next)  # (B, M)
         else:
-            x_next = torch.gather(zx[j], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+            x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
         for s in range(steps):
             if nx == 1:
                 d_prop = x_next - cand[j, :, s]
@@ -590,7 +592,7 @@ def _mcmc_block(
             # an i.i.d. draw from the filter, or each sequence's draw at its last step (streams).
             restart = props[j, :, 0] if draws is None else J_last
             J = torch.where(trans[k].unsqueeze(-1), J, restart)
-        Js[k - blk.start] = J
+        Js[i] = J
 
 
 def _reject(
