@@ -11,13 +11,16 @@ and s.d. over the data sets of the average of each fit's last 10 iterates, and t
     python benchmarks/table1_study.py --iters 250 --smoothers mcmc
 
 Besides the wall time it prints the process's CPU time per iteration, which is what to compare on
-a busy machine (other jobs' load inflates the wall time; the CPU time only through shared caches).
+a busy machine (other jobs' load inflates the wall time; the CPU time only through shared caches),
+and the minor page faults per iteration (first touches of fresh memory: the load does not move
+them; docs/design.md, "Cost per particle-step").
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import time
 import warnings
 
@@ -39,11 +42,13 @@ def run(
     datas = [make_huang_example(n_samples=1000, random_state=seed + i) for i in range(n_sets)]
     proto = _paper_estimator("student-t", 100, n_iter, seed, smoother=smoother, verbose=0)
     proto.set_params(device=device)
+    f0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         fits = fit_independent(proto, [d.u for d in datas], [d.y for d in datas], show_progress=False)
     secs, cpu = time.perf_counter() - t0, time.process_time() - c0
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f0
     hist = np.stack(
         [
             np.stack([np.asarray(e.history_[k], dtype=float).reshape(-1) for k in ("f.a", "f.b", "g.c")], 1)
@@ -58,6 +63,7 @@ def run(
         seconds=secs,
         per_iteration=secs / (n_iter + 1),  # n_iter M-steps, n_iter + 1 E-steps
         cpu_per_iteration=cpu / (n_iter + 1),  # the process's CPU time: robust to a busy machine
+        faults_per_iteration=faults / (n_iter + 1),  # minor page faults: independent of the load
         mean=est.mean(0),
         std=est.std(0, ddof=1),
         bias_norm=float(np.linalg.norm(THETA - est.mean(0))),
@@ -71,15 +77,16 @@ def print_table(results: list[dict]) -> None:
         f"1 torch thread, THP_MEM_ALLOC_ENABLE={os.environ.get('THP_MEM_ALLOC_ENABLE', '0')}"
     )
     print(
-        "| smoother | iterations | seconds | s / iteration | CPU s / iteration | 250 iterations (CPU) "
-        "| a | b | c | bias norm (avg last 10) |"
+        "| smoother | iterations | seconds | s / iteration | CPU s / iteration | page faults / iteration "
+        "| 250 iterations (CPU) | a | b | c | bias norm (avg last 10) |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         cols = " | ".join(f"{m:.4f} ± {s:.4f}" for m, s in zip(r["mean"], r["std"]))
         print(
             f"| {r['smoother']} | {r['n_iter']} | {r['seconds']:.0f} | {r['per_iteration']:.2f} | "
-            f"{r['cpu_per_iteration']:.2f} | {250 * r['per_iteration'] / 60:.1f} min "
+            f"{r['cpu_per_iteration']:.2f} | {r['faults_per_iteration']:.0f} | "
+            f"{250 * r['per_iteration'] / 60:.1f} min "
             f"({250 * r['cpu_per_iteration'] / 60:.1f} min) | {cols} | {r['bias_norm']:.4f} |"
         )
 

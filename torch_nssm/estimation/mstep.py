@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from typing import Callable
 
@@ -390,7 +391,7 @@ def m_step(
     groups = _Groups(shared, data.n_sequences)
     if len(models) != groups.n:
         raise ValueError(f"expected {groups.n} models for {data.n_sequences} sequences, got {len(models)}")
-    backups = [(copy.deepcopy(m.f.state_dict()), copy.deepcopy(m.g.state_dict())) for m in models]
+    backups = [(_backup(m.f), _backup(m.g)) for m in models]
     fs, gs = [m.f for m in models], [m.g for m in models]
     Rw_old = _stack([m.Rw for m in models], groups)
     noise_old = models[0].noise if shared else type(models[0].noise).stack([m.noise for m in models])
@@ -428,6 +429,18 @@ def m_step(
         new_models.append(candidate)
         errors.append(error)
     return MStepResult(new_models, errors, reports)
+
+
+def _backup(module: nn.Module) -> OrderedDict:
+    """A copy of ``module``'s state for ``load_state_dict``: its tensors cloned (``deepcopy`` of the
+    whole state dict cost 5-20 ms per M-step for 100 independent fits' 200 modules, ~1 ms this
+    way), anything else deep-copied, the version metadata kept."""
+    state = module.state_dict()
+    out = OrderedDict((k, v.clone() if isinstance(v, Tensor) else copy.deepcopy(v)) for k, v in state.items())
+    meta = getattr(state, "_metadata", None)
+    if meta is not None:
+        out._metadata = meta  # type: ignore[attr-defined]
+    return out
 
 
 def _check(model: StateSpaceModel) -> str | None:

@@ -136,6 +136,21 @@ class SequenceStreams:
                 out[b, pad] = fill
         return out
 
+    def normal_steps_into(self, out: Tensor, limits: Sequence[int], dtype: torch.dtype) -> None:
+        """Standard normals of the steps ``k < limits[b]`` of each sequence into ``out`` ``(t, B,
+        ...)`` (time-major, any dtype; zero elsewhere): the numbers of :meth:`steps` with
+        ``normal=True, fill=0``, each sequence's drawn in ``dtype`` into one reused buffer and
+        widened into its column of ``out``."""
+        t, shape = out.shape[0], tuple(out.shape[2:])
+        buffer = torch.empty((t, *shape), dtype=dtype, device=self.device)
+        for b in range(len(self)):
+            n = max(0, min(t, int(limits[b])))
+            if n:
+                self._draw(torch.randn, b, (n, *shape), dtype, buffer[:n])
+                out[:n, b].copy_(buffer[:n])
+            if n < t:
+                out[n:, b] = 0.0
+
     def rows(self, shape: tuple[int, ...], dtype: torch.dtype) -> Tensor:
         """Uniforms ``(B, *shape)`` for the live rows (``fill`` elsewhere)."""
         out = torch.full((len(self), *shape), _PAD_UNIFORM, dtype=dtype, device=self.device)

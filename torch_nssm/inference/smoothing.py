@@ -451,65 +451,148 @@ def ffbsi(
     dtype, device = X.dtype, X.device
     all_valid = trans.all(-1).tolist()
 
-    Js = torch.empty(T, B, M, dtype=torch.long, device=device)  # the trajectories' indices
+    blocks = list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))
+    # the statistics are taken block by block as the pass goes (the indices of one block kept,
+    # not all T steps'), where the blocks are the statistics' own
+    rolling = bool(blocks) and max(L, M * mcmc_steps) == max(L, M)
+    stats = _TrajectoryStatistics(X, logW, trans, M) if rolling else None
+    size = blocks[0].stop - blocks[0].start if rolling else T - 1
+    Js = torch.empty(size + 1, B, M, dtype=torch.long, device=device)  # indices: one block's, or all
     streams = generator if isinstance(generator, SequenceStreams) else None
     if streams is None:
-        Js[T - 1] = _draw(logW[T - 1], M, generator)
+        Js[-1] = _draw(logW[T - 1], M, generator)
     else:  # each sequence starts at its own last step; the rows past it restart from there
         last = data.lengths - 1
         logW_last = logW[last, torch.arange(B, device=device)]  # (B, L)
         J_last = inverse_cdf(cumulative_weights(logW_last), streams.rows((M,), dtype))
-        Js[T - 1] = J_last
+        Js[-1] = J_last
         limits = [n - 1 for n in data.lengths.tolist()]  # steps with a transition
         n_mcmc, n_reject = M * mcmc_steps, (2 * max_tries + 1) * M
-    for blk in reversed(list(time_blocks(T - 1, B * max(L, M * mcmc_steps)))):
+    for blk in reversed(blocks):
         t = blk.stop - blk.start
+        if rolling:  # row i: step blk.start + i; the last row is the later block's first
+            if t < size or blk.stop < T - 1:
+                Js[t] = Js[0] if blk.stop < T - 1 else Js[-1]
+            Jb = Js[: t + 1]
+        else:
+            Jb = Js[blk.start : blk.stop + 1]
         zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
         if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
             n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
             draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), dtype, reverse=True)
         if method == "mcmc":
-            if streams is None:
-                props = _proposals(logW[blk], M, mcmc_steps, generator)  # (t, B, S, M)
-                u = torch.rand(t, B, mcmc_steps, M, dtype=dtype, device=device, generator=generator)
-            else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
-                d = draws.view(B, t, 2, n_mcmc)
-                cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
-                u = d[:, :, 0].reshape(B * t, n_mcmc).contiguous()  # strided: inverse_cdf 3x slower
-                props = inverse_cdf(cdf, u).view(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
-                u = d[:, :, 1].reshape(B, t, mcmc_steps, M).transpose(0, 1).contiguous()
-            log_us = torch.log(u)  # time-major (each step's rows contiguous), reversed with streams
+            pre = (draws, J_last) if streams is not None else (None, None)
+            _mcmc_block(Jb, blk, zf, zx, filt.ancestors, logW, trans, all_valid, mcmc_steps, generator, *pre)
         else:
             cdfs = cumulative_weights(logW[blk])  # (t, B, L)
-        for k in range(blk.stop - 1, blk.start - 1, -1):
-            i = k - blk.start
-            J_next = Js[k + 1]
-            if nx == 1:
-                x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (B, M, 1)
-            else:
-                x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
-            if method == "mcmc":
-                parent = torch.gather(filt.ancestors[k + 1], 1, J_next)
-                if streams is None:
-                    J = _independent_mh(parent, zf[i], x_next, props[i], log_us[i])
-                    restart = props[i, :, 0]  # an i.i.d. draw from the filter, used only where J is not
+            for k in range(blk.stop - 1, blk.start - 1, -1):
+                i = k - blk.start
+                J_next = Jb[i + 1]
+                if nx == 1:
+                    x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (B, M, 1)
                 else:
-                    j = blk.stop - 1 - k
-                    J = _independent_mh(parent, zf[i], x_next, props[j], log_us[j])
-            else:
+                    x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
                 pre = None if streams is None else draws[:, blk.stop - 1 - k]
                 J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
-                restart = None
-            if streams is not None:
-                restart = J_last
-            if not all_valid[k]:
-                # Rows past a sequence's end restart from the filter (their transitions are masked out).
-                if restart is None:
-                    u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
-                    restart = inverse_cdf(cdfs[i], u)
-                J = torch.where(trans[k].unsqueeze(-1), J, restart)
-            Js[k] = J
+                if not all_valid[k]:
+                    # Rows past a sequence's end restart from the filter (their transitions are masked out).
+                    if streams is not None:
+                        restart = J_last
+                    else:
+                        u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
+                        restart = inverse_cdf(cdfs[i], u)
+                    J = torch.where(trans[k].unsqueeze(-1), J, restart)
+                Jb[i] = J
+        if rolling:
+            stats.add(blk, Jb[:t], Jb[1:])
+    if rolling:
+        return stats.finish()
     return _trajectory_statistics(X, logW, Js, trans)
+
+
+def _mcmc_block(
+    Js: Tensor,
+    blk: slice,
+    zf: Tensor,
+    zx: Tensor,
+    ancestors: Tensor,
+    logW: Tensor,
+    trans: Tensor,
+    all_valid: list,
+    steps: int,
+    generator,
+    draws: Tensor | None,
+    J_last: Tensor | None,
+) -> None:
+    """The MCMC backward pass over the steps ``blk`` (in reverse): ``Js`` ``(t + 1, B, M)`` holds the
+    indices of the steps ``blk.start ... blk.stop`` (the last given, the others written).
+
+    Everything that does not depend on the trajectories is made for the whole block before its
+    loop: the proposals from the filter weights, their whitened predictions ``z_f`` (``cand``),
+    ``2 log u`` and, for every particle ``j`` at ``k + 1``, the squared distance ``d0_j`` to its
+    genealogical parent's prediction, so that a trajectory's starting distance is one lookup.
+    Per step: three lookups by the trajectories' indices at ``k + 1`` (``z_x``, the parent,
+    ``d0``) and the Metropolis-Hastings test, the same operations on the same numbers as
+    :func:`_independent_mh` (the same indices bit for bit).  ``draws`` (per-sequence streams):
+    the block's uniforms ``(B, t, 2 S M)`` in reverse time (row ``j``: step ``blk.stop - 1 - j``),
+    each row's ``S M`` proposal uniforms then ``S M`` acceptance uniforms; padded rows restart at
+    ``J_last``.  Without streams they are drawn from ``generator`` in time order.
+    """
+    t = blk.stop - blk.start
+    B, L, nx = zf.shape[1:]
+    M = Js.shape[-1]
+    A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
+    zf_r = zf
+    if draws is None:
+        props = _proposals(logW[blk], M, steps, generator)  # (t, B, S, M)
+        u = torch.rand(t, B, steps, M, dtype=zf.dtype, device=zf.device, generator=generator)
+    else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
+        n = steps * M
+        d = draws.view(B, t, 2, n)
+        cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
+        u = d[:, :, 0].reshape(B * t, n).contiguous()  # strided: inverse_cdf 3x slower
+        props = inverse_cdf(cdf, u).view(B, t, steps, M).transpose(0, 1).contiguous()
+        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1)  # viewed: read by the log below
+        zf_r = zf.flip(0)  # the predictions in the proposals' reversed order, for their lookup
+    # accept where 2 log u < d - d_prop; time-major and contiguous (a strided threshold made the
+    # loop's comparisons slower than the copy it saves)
+    thr = torch.log(u, out=torch.empty(t, B, steps, M, dtype=u.dtype, device=u.device)).mul_(2.0)
+    # row i of the block's arrays: step blk.start + i; of the proposals' (props, thr, cand): row j
+    idx = props.view(t, B, steps * M)
+    if nx == 1:
+        zf1, zx1 = zf[..., 0], zx[..., 0]
+        cand = torch.gather(zf_r[..., 0], 2, idx).view(t, B, steps, M)
+        d0 = zx1 - torch.gather(zf1, 2, A_next)
+        d0 = d0 * d0
+    else:
+        cand = torch.gather(zf_r, 2, idx.unsqueeze(-1).expand(t, B, steps * M, nx)).view(t, B, steps, M, nx)
+        d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
+    for k in range(blk.stop - 1, blk.start - 1, -1):
+        i = k - blk.start
+        j = i if draws is None else blk.stop - 1 - k
+        J_next = Js[i + 1]
+        J = torch.gather(A_next[i], 1, J_next)  # the genealogical parents
+        d = torch.gather(d0[i], 1, J_next)  # their squared distances
+        if nx == 1:
+            x_next = torch.gather(zx1[i], 1, J_next)  # (B, M)
+        else:
+            x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+        for s in range(steps):
+            if nx == 1:
+                d_prop = x_next - cand[j, :, s]
+                d_prop = d_prop * d_prop
+            else:
+                d_prop = squared_norm(x_next - cand[j, :, s])
+            accept = thr[j, :, s] < d - d_prop
+            J = torch.where(accept, props[j, :, s], J)
+            if s + 1 < steps:
+                d = torch.where(accept, d_prop, d)
+        if not all_valid[k]:
+            # Rows past a sequence's end restart from the filter (their transitions are masked out):
+            # an i.i.d. draw from the filter, or each sequence's draw at its last step (streams).
+            restart = props[j, :, 0] if draws is None else J_last
+            J = torch.where(trans[k].unsqueeze(-1), J, restart)
+        Js[i] = J
 
 
 def _reject(
@@ -558,27 +641,50 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     trajectory visits (``c = 0``, where ``xbar`` is the particle itself) are selected by
     ``(1 - c)^+`` arithmetic instead of ``torch.where`` (~3 ns an entry with a random mask).
     """
-    T, B, L, nx = X.shape
-    M = Js.shape[-1]
-    dtype, device = X.dtype, X.device
-    all_valid = bool(trans.all())
-    log_ws, ws = _workspace.empty((T, B, L), dtype, device), _workspace.empty((T, B, L), dtype, device)
-    log_ws[-1] = logW[-1]
-    torch.exp(logW[-1], out=ws[-1])
-    next_mean = _workspace.empty((T - 1, B, L, nx), dtype, device)
-    trans_w = _workspace.empty((T - 1, B, L), dtype, device)
-    scatter = torch.zeros(B, nx, nx, dtype=dtype, device=device)
-    log_table = torch.log(torch.arange(M + 1, dtype=dtype, device=device) / M)  # log(c / M), -inf at 0
-    one = torch.ones((1, 1, 1), dtype=dtype, device=device)
-    for sl in time_blocks(T - 1, B * max(L, M)):
+    stats = _TrajectoryStatistics(X, logW, trans, Js.shape[-1])
+    for sl in time_blocks(X.shape[0] - 1, X.shape[1] * max(X.shape[2], Js.shape[-1])):
+        stats.add(sl, Js[sl], Js[sl.start + 1 : sl.stop + 1])
+    return stats.finish()
+
+
+class _TrajectoryStatistics:
+    """:func:`_trajectory_statistics` block by block: :meth:`add` takes the indices of a block of
+    steps and of the steps after them, as soon as the backward pass has drawn them (so that the
+    pass keeps one block of indices instead of all ``(T, B, M)``: that array's first-touch page
+    faults were ~20,000 per E-step at the Table 1 size); :meth:`finish` sums the blocks'
+    scatters in time order (the same sums, bit for bit, as one pass over the blocks)."""
+
+    def __init__(self, X: Tensor, logW: Tensor, trans: Tensor, M: int):
+        T, B, L, nx = X.shape
+        dtype, device = X.dtype, X.device
+        self.X, self.logW, self.trans, self.M = X, logW, trans, M
+        self.all_valid = bool(trans.all())
+        self.log_ws = _workspace.empty((T, B, L), dtype, device)
+        self.ws = _workspace.empty((T, B, L), dtype, device)
+        self.log_ws[-1] = logW[-1]
+        torch.exp(logW[-1], out=self.ws[-1])
+        self.next_mean = _workspace.empty((T - 1, B, L, nx), dtype, device)
+        self.trans_w = _workspace.empty((T - 1, B, L), dtype, device)
+        # log(c / M), -inf at 0
+        self.log_table = torch.log(torch.arange(M + 1, dtype=dtype, device=device) / M)
+        self.one = torch.ones((1, 1, 1), dtype=dtype, device=device)
+        self.parts: list[tuple[int, Tensor]] = []
+
+    def add(self, sl: slice, J: Tensor, J_next: Tensor) -> None:
+        """The statistics of the steps ``sl`` from their indices ``J`` ``(t, B, M)`` and those of
+        the steps ``sl.start + 1 ... sl.stop`` (``J_next``)."""
+        X, logW, M = self.X, self.logW, self.M
+        _, B, L, nx = X.shape
+        dtype, device = X.dtype, X.device
+        log_ws, ws, next_mean, trans_w = self.log_ws, self.ws, self.next_mean, self.trans_w
+        log_table = self.log_table
         t = sl.stop - sl.start
-        J, valid = Js[sl], trans[sl]  # (t, B, M), (t, B)
-        J_next = Js[sl.start + 1 : sl.stop + 1]
+        valid = self.trans[sl]  # (t, B)
         X_next, X_here = X[sl.start + 1 : sl.stop + 1], X[sl]
-        masked = not (all_valid or bool(valid.all()))
+        masked = not (self.all_valid or bool(valid.all()))
         # written straight into the outputs where nothing is masked (no copies of the block)
         c = torch.zeros(t, B, L, dtype=dtype, device=device) if masked else trans_w[sl].zero_()
-        c.scatter_add_(2, J, one.expand(t, B, M))
+        c.scatter_add_(2, J, self.one.expand(t, B, M))
         unvisited = torch.rsub(c, 1.0).clamp_(min=0.0)  # 1 where c = 0, else 0 (c is an integer)
         xbar = torch.empty(t, B, L, nx, dtype=dtype, device=device) if masked else next_mean[sl]
         if nx == 1:
@@ -597,16 +703,23 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
         counts = c.long()
         s = c.mul_(1.0 / M)
         if not masked:
-            scatter += step_scatter.sum(0)
+            self.parts.append((sl.start, step_scatter.sum(0)))
             torch.index_select(log_table, 0, counts.view(-1), out=log_ws[sl].view(-1))
             ws[sl] = s
         else:
-            scatter += torch.where(valid.view(t, B, 1, 1), step_scatter, 0.0).sum(0)
+            self.parts.append((sl.start, torch.where(valid.view(t, B, 1, 1), step_scatter, 0.0).sum(0)))
             log_ws[sl] = torch.where(valid.unsqueeze(-1), log_table[counts], logW[sl])
             ws[sl] = torch.where(valid.unsqueeze(-1), s, torch.exp(logW[sl]))
             trans_w[sl] = torch.where(valid.unsqueeze(-1), s, 0.0)
             next_mean[sl] = xbar
-    return SmootherOutput(log_ws, next_mean, trans_w, scatter, ws)
+
+    def finish(self) -> SmootherOutput:
+        """The smoother output (every step added)."""
+        _, B, _, nx = self.X.shape
+        scatter = torch.zeros(B, nx, nx, dtype=self.X.dtype, device=self.X.device)
+        for _, part in sorted(self.parts, key=lambda p: p[0]):
+            scatter += part
+        return SmootherOutput(self.log_ws, self.next_mean, self.trans_w, scatter, self.ws)
 
 
 @torch.no_grad()
