@@ -112,11 +112,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         ``"newton"``: after each M-step, move ``f``'s and ``g``'s free parameters by a Newton step
         on the log-likelihood instead (the observed information by Louis' identity from the same
         E-step, :mod:`torch_nssm.estimation.acceleration`), until a step falls within one standard
-        error once the noise has settled; plain EM from there.  The noise parameters jump along
-        their own EM path by squared extrapolation (SQUAREM) meanwhile.  Fewer iterations where EM
-        is slow (a small process noise); each Newton step costs one information computation
-        (one to dozens of E-steps).  ``history_["accelerated"]`` marks the iterates it produced.
-        Needs ``segment_length=None``.
+        error; from there EM, with the noise parameters jumping along their own EM path by squared
+        extrapolation (SQUAREM).  Fewer iterations where EM is slow (a small process noise); each
+        Newton step costs one information computation (a few E-steps).
+        ``history_["accelerated"]`` marks the iterates it produced.  Needs ``segment_length=None``.
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3

@@ -11,18 +11,18 @@ for a quadratic ``Q`` is ``I_c^{-1}`` times the score), the Newton step on the l
 for the free parameters of ``f`` and ``g`` together, given the noise parameters.  (Newton steps
 for the noise parameters too, block by block, were tried on the manipulator and made the fit
 unstable: their information is noisier and often not positive definite far from the maximum.)
-The noise parameters instead jump along their own EM path by squared extrapolation
-(:class:`NoiseExtrapolation`), which needs no information.
+Once the Newton steps end, the noise parameters jump along their own EM path by squared
+extrapolation (:class:`NoiseExtrapolation`), which needs no information.  (Jumping them while the
+Newton steps run moved the maximum over ``f`` and ``g`` under those steps: on six manipulator
+records theta then converged in 13.2 iterations on average, against 9.8 without the jumps.)
 
 Safeguards: the EM step where ``I`` is not positive definite; a step at most ``MAX_FACTOR`` times
 the EM step (in the ``I_c`` norm); a step after which the log-likelihood estimate falls by more
-than :func:`newton_tolerance` is undone (the EM step is taken) and halves the cap; a Newton step
-that points back against the previous one (that one overshot) is taken with half the cap.  The
-acceleration ends when the cap falls below 2, or when a Newton step is within one standard error
-(``delta' I delta < 1``: the particle noise of the information would dominate) and the noise has
-settled (its last EM step below its particle noise, :meth:`NoiseExtrapolation.moves`: the Newton
-step holds the noise fixed, so while the noise moves, so does the maximum over ``f`` and ``g``);
-the fit goes on with plain EM (and the noise's extrapolation).
+than :func:`newton_tolerance` is undone (the EM step is taken) and ends the acceleration; and
+a Newton step that points back against the previous one (that one overshot) is replaced by the EM
+step and halves the cap, and once a Newton step is within one standard error (``delta' I delta <
+1``: the particle noise of the information would dominate) or the cap falls below 2, the Newton
+steps end and the fit goes on with EM and the noise's extrapolation.
 """
 
 from __future__ import annotations
@@ -150,9 +150,7 @@ def newton_step(
     if previous is not None and previous.shape == delta.shape and float(delta @ complete @ previous) < 0:
         # it points back: the last step overshot (the information's particle noise, or the noise
         # parameters' own moves): back with half the cap, and the EM step once that is below 2
-        max_factor, reason = max_factor / 2.0, "reversed"
-        if max_factor < 2.0:
-            return NewtonStep(False, True, 1.0, reason)
+        return NewtonStep(False, False, 1.0, "reversed")
     norm_em = float(np.sqrt(max(d @ complete @ d, 0.0)))
     norm = float(np.sqrt(max(delta @ complete @ delta, 0.0)))
     if not np.isfinite(norm) or norm_em == 0.0:
@@ -207,9 +205,9 @@ def _sym_exp(a: np.ndarray) -> np.ndarray:
 class NoiseExtrapolation:
     """Squared extrapolation (SQUAREM, Varadhan & Roland 2008) of the noise parameters.
 
-    While the Newton steps move ``f``'s and ``g``'s parameters, the noise parameters converge at
-    EM's own linear rate; on the manipulator the measurement-noise scale starts 25x too large and
-    EM shrinks it by 5-15 % per iteration.  From three successive EM iterates of a block
+    The Newton steps move ``f``'s and ``g``'s parameters; the noise parameters converge at EM's
+    own linear rate (on the manipulator the measurement-noise scale starts 25x too large and EM
+    shrinks it by 5-15 % per iteration).  From three successive EM iterates of a block
     (``Rw``, ``Rv``, the degrees of freedom), ``t0 -> t1 -> t2``, this jumps to::
 
         t' = t0 + 2 alpha r + alpha^2 v,   r = t1 - t0,  v = t2 - 2 t1 + t0,  alpha = |r| / |v|
@@ -219,10 +217,6 @@ class NoiseExtrapolation:
     degrees of freedom, so every jump is a valid model; the next cycle starts at the jump, whose
     own M-step is SQUAREM's stabilising step.  It needs no information: an extrapolated iteration
     costs an EM iteration.
-
-    :meth:`moves` tells the Newton steps whether the noise's last EM step was larger than that
-    noise: the Newton steps for ``f`` and ``g`` hold the noise fixed, so "within one standard
-    error" ends them only once the noise has settled.
 
     Against the particle noise: a block is extrapolated only when its two EM steps agree in
     direction (cosine >= ``SQUAREM_MIN_COSINE``) and are not smaller than ``SQUAREM_MIN_STEP``
@@ -252,15 +246,6 @@ class NoiseExtrapolation:
             if a is not None:
                 out[name] = a
         return out
-
-    def moves(self, model: StateSpaceModel) -> bool:
-        """Whether the M-step that produced ``model`` moved the noise by more than its particle
-        noise (the least step of an extrapolation)."""
-        if not self.points:
-            return True
-        new, last = self._coordinates(model), self.points[-1]
-        steps = [np.sqrt(np.mean((new[n] - last[n]) ** 2)) for n in new if n in last]
-        return not steps or max(steps) >= self.min_step
 
     def start(self, model: StateSpaceModel) -> None:
         """A new cycle at ``model`` (the point whose E-step runs next)."""

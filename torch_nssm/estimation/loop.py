@@ -50,8 +50,8 @@ class EMOptions:
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
     acceleration : {None, "newton"}
         ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
-        information, until a step is within one standard error, and squared extrapolation of the
-        noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
+        information, until a step is within one standard error, then squared extrapolation of
+        the noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
     progress : str or None
         Description of a progress bar (``None``: no bar).
@@ -301,14 +301,13 @@ def run_em(
                     step = newton_step(at, models[0], previous_step, max_factor)
                     if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
                         max_factor /= 2.0
-                    # within one standard error given the noise ends the Newton steps only once
-                    # the noise has settled: its convergence moves f's and g's maximum
-                    settled = extrapolation is None or not extrapolation.moves(models[0])
-                    accelerating = not (step.done and settled) and max_factor >= 2.0
+                    accelerating = not step.done and max_factor >= 2.0
                     if step.taken:
                         newton, previous_step = em_step, step.delta
                 histories[0]["accelerated"].append(newton is not None)
-            if extrapolation is not None and still:
+            if extrapolation is not None and still and accelerating:  # the noise's turn comes after
+                extrapolation.start(models[0])  # the Newton steps (its jumps would move their maximum)
+            elif extrapolation is not None and still:
                 rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
                 extrapolated = extrapolation.propose(models[0], rejected)
                 if extrapolated is not None:
@@ -328,9 +327,7 @@ def run_em(
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
                     batch, failure, lost = None, str(exc), newton is not None
                 if lost:  # the accelerated step lost likelihood or failed: the M-step's instead
-                    # one estimate is noisy (sd of a few units): a shorter cap, not the end
-                    models[0], max_factor = _restore(newton), max_factor / 2.0
-                    accelerating = accelerating and max_factor >= 2.0
+                    models[0], accelerating = _restore(newton), False  # Newton: EM from here
                     histories[0]["accelerated"][-1] = False
                     if extrapolation is not None:  # the noise: shorter jumps, a new cycle at the M-step's
                         extrapolation.undone(models[0])
