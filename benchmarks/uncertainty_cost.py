@@ -94,6 +94,8 @@ def _baseline(rev: str):
         package = "torch_nssm.inference" if "inference" in path else "torch_nssm.estimation"
         text = text.replace("from ..inference.smoothing import", "from baseline_smoothing import")
         text = re.sub(r"from \.\.(\w)", r"from torch_nssm.\1", text)
+        text = re.sub(r"from \.\. import", "from torch_nssm import", text)
+        text = re.sub(r"from \. import", f"from {package} import", text)
         text = re.sub(r"from \.(\w)", rf"from {package}.\1", text)
         (tmp / f"{name}.py").write_text(text)
     sys.path.insert(0, str(tmp))

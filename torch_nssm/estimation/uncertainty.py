@@ -373,16 +373,19 @@ def _expected_rows(data: SequenceBatch, est: EStepOutput):
     """The M-step's weighted rows (transition and observation), above :data:`ROW_WEIGHT_CUTOFF`."""
     X, sm = est.filter.particles, est.smoother
     T, B, L, nx = X.shape
-    s = sm.transition_weights
-    keep = s > ROW_WEIGHT_CUTOFF
-    u_rows = data.u.unsqueeze(2).expand(T, B, L, data.u.shape[-1])
-    trans = (X[:-1][keep], u_rows[:-1][keep], sm.next_mean[keep], s[keep])
+    # the kept rows' flat indices, found once (a boolean mask per tensor costs one search each),
+    # and the per-step tensors indexed by the rows' steps instead of expanded to every particle
+    Xf = X.reshape(-1, nx)
+    u = data.u.reshape(T * B, -1)
+    s = sm.transition_weights.reshape(-1)
+    rows = torch.nonzero(s > ROW_WEIGHT_CUTOFF).squeeze(-1)
+    trans = (Xf[rows], u[rows // L], sm.next_mean.reshape(-1, nx)[rows], s[rows])
     observed = data.obs_mask.any(-1)  # (T, B)
-    W = torch.exp(sm.log_weights) * observed.unsqueeze(-1)
-    keep = W > ROW_WEIGHT_CUTOFF
-    y = torch.nan_to_num(data.y).unsqueeze(2).expand(T, B, L, data.y.shape[-1])
-    mask = data.obs_mask.unsqueeze(2).expand(T, B, L, data.y.shape[-1])
-    obs = (X[keep], u_rows[keep], y[keep], mask[keep], W[keep])
+    W = (torch.exp(sm.log_weights) * observed.unsqueeze(-1)).reshape(-1)
+    rows = torch.nonzero(W > ROW_WEIGHT_CUTOFF).squeeze(-1)
+    steps = rows // L
+    y = torch.nan_to_num(data.y).reshape(T * B, -1)
+    obs = (Xf[rows], u[steps], y[steps], data.obs_mask.reshape(T * B, -1)[steps], W[rows])
     return trans, obs
 
 
@@ -970,19 +973,26 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
         q = (z * z).sum(-1)
         nu = dof
         lam = (nu + p) / (nu + q)
-        dq = torch.zeros(x.shape[0], w0.numel(), dtype=w0.dtype, device=w0.device)
+        # dq only in the columns q depends on (g's and Rv's; not dof's, nor f's and Rw's)
+        parts = []
         if Jg is not None:
-            dq[:, g_cols] = -2.0 * _row_products(v, Jg)
+            parts.append((list(g_cols), -2.0 * _row_products(v, Jg)))
         if "Rv" in col:
             diagonal = (torch.arange(p * (p + 1) // 2, device=w0.device) < p).to(w0.dtype)
-            dq[:, col["Rv"]] = -2.0 * (_cholesky_scores(C, z, v, 1.0) + diagonal)
-        h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
-        H = (dq * (W * h_qq).unsqueeze(-1)).mT @ dq
+            rv_cols = list(range(col["Rv"].start, col["Rv"].stop))
+            parts.append((rv_cols, -2.0 * (_cholesky_scores(C, z, v, 1.0) + diagonal)))
+        H = torch.zeros(w0.numel(), w0.numel(), dtype=w0.dtype, device=w0.device)
+        if parts:
+            idx = torch.as_tensor(sum((c for c, _ in parts), []), device=w0.device)
+            dq = torch.cat([value for _, value in parts], -1)  # (R, columns of idx)
+            h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
+            H[idx.unsqueeze(-1), idx] = (dq * (W * h_qq).unsqueeze(-1)).mT @ dq
         if "dof" in col:
             k = col["dof"].start
-            cross = (W * (-nu * (q - p) / (2.0 * (nu + q) ** 2))).unsqueeze(-1) * dq
-            H[k] += cross.sum(0)
-            H[:, k] += cross.sum(0)
+            if parts:
+                cross = dq.mT @ (W * (-nu * (q - p) / (2.0 * (nu + q) ** 2)))
+                H[k, idx] += cross
+                H[idx, k] += cross
             l_nu = (
                 0.5 * torch.digamma(0.5 * (nu + p)) - 0.5 * torch.digamma(0.5 * nu) - 0.5 * p / nu
                 - 0.5 * torch.log1p(q / nu) + 0.5 * (nu + p) * q / (nu * (nu + q))
