@@ -776,8 +776,8 @@ def backward_segments(
                     q = torch.nonzero(none2).squeeze(-1)
                     b_idx, m_idx, xn = b_idx[q], m_idx[q], xn[q]
                 if b_idx.numel():  # exact draws from the backward kernel
-                    d2 = squared_norm(xn.unsqueeze(1) - zf[i][b_idx])  # (P, L)
-                    J[b_idx, m_idx] = _draw(lw[i][b_idx] - 0.5 * d2, 1, generator)[:, 0]
+                    nxt = J_next[b_idx, m_idx]
+                    J[b_idx, m_idx] = _exact_backward(zf[i], lw[i], zx[i], b_idx, nxt, generator)
             if any_invalid[i]:  # past a sequence's end: restart from the filter
                 J = torch.where(valid[i].unsqueeze(-1), J, props[i, :, :, 0])
             Js[:, blk.start + i] = J.view(G, B, M)
@@ -788,6 +788,26 @@ def backward_segments(
 #: ``max_tries`` are drawn in the loop, in rounds of twice as many each, for the indices not
 #: settled yet.
 _FIRST_TRIES = 4
+
+
+def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tensor, generator) -> Tensor:
+    """One exact draw from the backward kernel ``W_i exp(-|zx_j - zf_i|^2 / 2)`` per index, for
+    indices of rows ``rows`` ``(P,)`` whose next particle is ``nxt`` ``(P,)`` (``zf``, ``zx``
+    ``(R, L, nx)``, ``lw`` ``(R, L)``).
+
+    The kernel depends on the index only through ``(row, next particle)``, and the indices left to
+    the exact draw share few (measured: 263 indices, 54 distinct pairs a step on the linear test
+    model, ``L = 200``): its ``O(L)`` table is built once per distinct pair, and each index draws
+    from its pair's by a uniform of its own (one ``searchsorted`` over the tables laid end to end)."""
+    R, L, nx = zf.shape
+    pairs, which = torch.unique(rows * L + nxt, return_inverse=True)
+    r, j = pairs // L, pairs % L
+    d2 = squared_norm(zx[r, j].unsqueeze(1) - zf[r])  # (U, L)
+    cdf = cumulative_weights(lw[r] - 0.5 * d2)
+    offset = torch.arange(pairs.numel(), dtype=cdf.dtype, device=cdf.device).unsqueeze(-1)
+    u = torch.rand(rows.numel(), dtype=cdf.dtype, device=cdf.device, generator=generator)
+    pos = torch.searchsorted((cdf + offset).view(-1), u + which.to(cdf.dtype), right=True)
+    return (pos - which * L).clamp_(0, L - 1)
 
 
 def _first_accepted(props: Tensor, accept: Tensor, bits: Tensor) -> tuple[Tensor, Tensor]:
