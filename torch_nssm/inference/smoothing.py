@@ -760,7 +760,10 @@ def backward_segments(
             if b_idx.numel():
                 zf_i = zf[i].reshape(GB * L, nx)
                 xn = x_next[b_idx, m_idx]  # (P, nx)
-                left, S_r = S2, S1
+                # where the first round left most indices, the tries accept so rarely (a tiny process
+                # noise) that the rounds are wasted: the exact draws at once
+                left = S2 if b_idx.numel() <= _ROUNDS_MAX_LEFT * GB * M else 0
+                S_r = S1
                 while left and b_idx.numel():  # further rounds of tries, for these indices only
                     S_r = min(left, 2 * S_r)  # doubling: the indices left accept less often
                     left -= S_r
@@ -789,6 +792,11 @@ def backward_segments(
 #: settled yet.
 _FIRST_TRIES = 4
 
+#: The further rounds of tries of :func:`backward_segments` are skipped at a step where the first
+#: round left more than this share of the indices (its acceptance below ~16 % a try): the manipulator's
+#: tiny process noise leaves ~95 %, the test models ~15 %.
+_ROUNDS_MAX_LEFT = 0.5
+
 
 def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tensor, generator) -> Tensor:
     """One exact draw from the backward kernel ``W_i exp(-|zx_j - zf_i|^2 / 2)`` per index, for
@@ -800,10 +808,23 @@ def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tenso
     model, ``L = 200``): its ``O(L)`` table is built once per distinct pair, and each index draws
     from its pair's by a uniform of its own (one ``searchsorted`` over the tables laid end to end)."""
     R, L, nx = zf.shape
-    pairs, which = torch.unique(rows * L + nxt, return_inverse=True)
+    pairs, which = torch.unique(rows * L + nxt, return_inverse=True)  # sorted: by row, then particle
     r, j = pairs // L, pairs % L
-    d2 = squared_norm(zx[r, j].unsqueeze(1) - zf[r])  # (U, L)
-    cdf = cumulative_weights(lw[r] - 0.5 * d2)
+    U = pairs.numel()
+    a = zx[r, j]  # (U, nx)
+    # -|a - zf_i|^2 / 2 = a . zf_i - |zf_i|^2 / 2 - |a|^2 / 2, the last the same for every i (the
+    # table is normalised): the products a . zf_i by one batched product of each row's pairs,
+    # padded to the most a row has, against the row's predictions (no (U, L, nx) copy of them)
+    counts = torch.bincount(r, minlength=R)
+    C = int(counts.max())
+    if R * C <= 4 * U:
+        slot = torch.arange(U, device=r.device) - (torch.cumsum(counts, 0) - counts)[r]
+        A = torch.zeros(R, C, nx, dtype=zf.dtype, device=zf.device)
+        A[r, slot] = a
+        dots = torch.bmm(A, zf.mT)[r, slot]  # (U, L)
+    else:  # pairs crowded in a few of many rows: the rows' predictions gathered instead
+        dots = torch.bmm(zf[r], a.unsqueeze(-1)).squeeze(-1)
+    cdf = cumulative_weights(lw[r] - 0.5 * squared_norm(zf)[r] + dots)
     offset = torch.arange(pairs.numel(), dtype=cdf.dtype, device=cdf.device).unsqueeze(-1)
     u = torch.rand(rows.numel(), dtype=cdf.dtype, device=cdf.device, generator=generator)
     pos = torch.searchsorted((cdf + offset).view(-1), u + which.to(cdf.dtype), right=True)
