@@ -1067,14 +1067,18 @@ def _windowed_covariance(
     ``V1 = sum_k c_k (sum_{j=k}^{k+K} c_j)^T``.  ``lag`` sets ``K`` instead (tests).
     """
     G, n, B, M, d = scores.shape
-    # autocovariance of each parameter's centred score by FFT over the pieces' steps, summed over
-    # (at most _WINDOW_PATHS) draws, the pieces and the sequences, per lag divided by its number of
-    # pairs: it only chooses the window
+    # autocovariance of each parameter's centred score over the pieces' steps, summed over (at most
+    # _WINDOW_PATHS) draws, the pieces and the sequences, per lag divided by its number of pairs: it
+    # only chooses the window.  From the products of all pairs of steps, one batched product of
+    # (d, n, draws) by its transpose, summed along the diagonals (~7x cheaper than by FFT for
+    # the pieces' ~70 steps)
     some = scores[:, :, :, :_WINDOW_PATHS]
-    some = some - some.mean(3, keepdim=True)
-    size = 1 << int(np.ceil(np.log2(2 * n)))
-    F = torch.fft.rfft(some, n=size, dim=1)
-    acov = torch.fft.irfft((F * F.conj()).real.sum((0, 2, 3)), n=size, dim=0)[:n]  # (n, d)
+    some = (some - some.mean(3, keepdim=True)).permute(4, 1, 0, 2, 3).reshape(d, n, -1)
+    S = some @ some.mT  # (d, n, n): sum over the series of s_i s_j
+    ar = torch.arange(n, device=S.device)
+    cols = ar.unsqueeze(-1) + ar  # (i, k) -> i + k
+    S = torch.cat([S, torch.zeros_like(S)], -1)  # S[:, i, i + k] is 0 past the last step
+    acov = torch.gather(S, 2, cols.expand(d, n, n)).sum(1).T  # (n, d): lag k summed over i
     acov = (acov / torch.arange(n, 0, -1, dtype=acov.dtype, device=acov.device).unsqueeze(-1)).cpu().numpy()
     rho = acov / np.where(acov[:1] > 0, acov[:1], 1.0)
     tau = 1.0 + 2.0 * np.cumsum(rho[1:], axis=0)  # tau(K) for K = 1 .. n-1
