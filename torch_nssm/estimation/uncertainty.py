@@ -483,7 +483,7 @@ def observed_information(
             def restricted(v: Tensor, part=part, idx=idx) -> Tensor:
                 return part(w0.index_put((idx,), v))
 
-            h = torch.autograd.functional.hessian(restricted, w0[idx])
+            h = torch.autograd.functional.hessian(restricted, w0[idx], vectorize=True)
             hessian[idx.unsqueeze(-1), idx] = h.detach().cpu()
 
     # the variance of the complete-data score, from pieces of backward-simulated trajectories
@@ -504,7 +504,9 @@ def observed_information(
         params = ll.unpack(w)
         return torch.cat([b.natural_entries(params[b.key]) for b in blocks]) if blocks else w
 
-    J = torch.autograd.functional.jacobian(natural, w0).cpu().numpy() if d else np.zeros((0, 0))
+    J = np.zeros((0, 0))
+    if d:
+        J = torch.autograd.functional.jacobian(natural, w0, vectorize=True).cpu().numpy()
     with np.errstate(invalid="ignore"):
         cov = J @ np.nan_to_num(cov_w) @ J.T
     bad = ~np.isfinite(np.diagonal(cov_w)) if d else np.zeros(0, dtype=bool)
@@ -1025,7 +1027,7 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
     def weighted(w: Tensor) -> Tensor:
         return _gaussian_term(moments, w, ll.unpack(w).get("Rv", ll.model.noise.Rv), None, 0.0)
 
-    return H + torch.autograd.functional.hessian(weighted, w0)
+    return H + torch.autograd.functional.hessian(weighted, w0, vectorize=True)
 
 
 def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observed: bool) -> Tensor:
