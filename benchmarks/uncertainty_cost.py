@@ -7,6 +7,12 @@ E-step (filter + FFBSm) at the same particle count, measured alternately on one 
 ratio is what to read on a busy machine).  The first call of ``torch.func`` in a process costs
 about 1.5 s of imports more, not counted.
 
+``--manipulator`` times instead the information of accelerated EM
+(:func:`~torch_nssm.estimation.acceleration.information_at`: module parameters only, 300
+trajectories) on the manipulator (paper Section 4.2, ``N = 500``, 10 % outliers, 1,000 particles,
+MCMC E-step), whose tiny process noise (``2e-5`` on two states) makes the backward sampler's
+rejection tries rarely accept.
+
 ``--baseline REV`` also times the implementation of a git revision (its
 ``estimation/uncertainty.py`` and ``inference/smoothing.py``, loaded from ``git show`` into a
 temporary package beside this checkout's) in the same loop, for an old-against-new comparison on
@@ -14,6 +20,7 @@ the same machine load:
 
     python benchmarks/uncertainty_cost.py
     python benchmarks/uncertainty_cost.py --baseline 3a089ef
+    python benchmarks/uncertainty_cost.py --manipulator --particles 1000 --repeats 3
 """
 
 from __future__ import annotations
@@ -33,10 +40,12 @@ import torch
 
 from torch_nssm import RobustNSSMEstimator
 from torch_nssm.blocks.linear import LinearObservation, LinearTransition
-from torch_nssm.datasets import make_paper_example
+from torch_nssm.datasets import make_manipulator, make_paper_example
 from torch_nssm.datasets.paper import PaperObservation, PaperTransition
+from torch_nssm.estimation.acceleration import TRAJECTORIES
 from torch_nssm.estimation.estep import e_step
 from torch_nssm.estimation.uncertainty import observed_information
+from torch_nssm.reproduce.manipulator_study import manipulator_estimator
 
 
 def _paper(L: int) -> RobustNSSMEstimator:
@@ -78,6 +87,12 @@ def _linear(L: int) -> RobustNSSMEstimator:
     return est.fit(u, y)
 
 
+def _manipulator(L: int) -> RobustNSSMEstimator:
+    data = make_manipulator(n_samples=500, outlier_fraction=0.1, random_state=0)
+    est = manipulator_estimator(data, n_particles=L, smoother="mcmc", n_iter=3, random_state=0)
+    return est.fit(data.u, data.y)
+
+
 def _baseline(rev: str):
     """``observed_information`` of git revision ``rev``: its uncertainty and smoothing modules,
     their relative imports made absolute (the rest of the package is this checkout's)."""
@@ -94,31 +109,36 @@ def _baseline(rev: str):
         package = "torch_nssm.inference" if "inference" in path else "torch_nssm.estimation"
         text = text.replace("from ..inference.smoothing import", "from baseline_smoothing import")
         text = re.sub(r"from \.\.(\w)", r"from torch_nssm.\1", text)
+        text = re.sub(r"from \.\. import", "from torch_nssm import", text)
+        text = re.sub(r"from \. import", f"from {package} import", text)
         text = re.sub(r"from \.(\w)", rf"from {package}.\1", text)
         (tmp / f"{name}.py").write_text(text)
     sys.path.insert(0, str(tmp))
     return importlib.import_module("baseline_uncertainty").observed_information
 
 
-def measure(build, L: int, repeats: int = 5, baseline=None) -> tuple[float, float, float | None]:
-    """Median seconds of the information, of one E-step and of the baseline's information."""
+def measure(
+    build, L: int, repeats: int = 5, baseline=None, **info_options
+) -> tuple[float, float, float | None]:
+    """Median seconds of the information, of one E-step and of the baseline's information
+    (``info_options`` for both informations)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         est = build(L)
     model, data = est._uncertainty_source
     options = est._em_options().estep
     estep = e_step(model, data, options, torch.Generator().manual_seed(0))  # the fit's kind of E-step
-    observed_information(model, data, estep)  # imports, caches
+    observed_information(model, data, estep, **info_options)  # imports, caches
     if baseline is not None:
-        baseline(model, data, estep)
+        baseline(model, data, estep, **info_options)
     info, step, old = [], [], []
     for r in range(repeats):
         if baseline is not None:
             t = time.perf_counter()
-            baseline(model, data, estep, generator=torch.Generator().manual_seed(r))
+            baseline(model, data, estep, generator=torch.Generator().manual_seed(r), **info_options)
             old.append(time.perf_counter() - t)
         t = time.perf_counter()
-        observed_information(model, data, estep, generator=torch.Generator().manual_seed(r))
+        observed_information(model, data, estep, generator=torch.Generator().manual_seed(r), **info_options)
         info.append(time.perf_counter() - t)
         t = time.perf_counter()
         e_step(model, data, options, torch.Generator().manual_seed(r))
@@ -133,14 +153,22 @@ def main() -> None:
     parser.add_argument("--particles", type=int, nargs="+", default=[200, 500, 1000])
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--baseline", help="a git revision whose information to time alongside")
+    parser.add_argument(
+        "--manipulator", action="store_true", help="the manipulator with accelerated EM's information"
+    )
     args = parser.parse_args()
     torch.set_num_threads(1)
     baseline = _baseline(args.baseline) if args.baseline else None
     head = f"{'model':16s} {'L':>5s} {'information':>12s} {'E-step':>8s} {'ratio':>6s}"
     print(head + (f" {'baseline':>10s} {'ratio':>6s}" if baseline else ""))
-    for name, build in (("paper 4.1", _paper), ("linear 2-state", _linear)):
+    problems = (("paper 4.1", _paper), ("linear 2-state", _linear))
+    options = {}
+    if args.manipulator:
+        problems = (("manipulator", _manipulator),)
+        options = dict(fit_Rw=False, fit_Rv=False, fit_dof=False, n_trajectories=TRAJECTORIES)
+    for name, build in problems:
         for L in args.particles:
-            info, step, old = measure(build, L, args.repeats, baseline)
+            info, step, old = measure(build, L, args.repeats, baseline, **options)
             line = f"{name:16s} {L:5d} {info:10.3f} s {step:6.3f} s {info / step:6.2f}"
             if old is not None:
                 line += f" {old:8.3f} s {old / step:6.2f}"

@@ -373,16 +373,19 @@ def _expected_rows(data: SequenceBatch, est: EStepOutput):
     """The M-step's weighted rows (transition and observation), above :data:`ROW_WEIGHT_CUTOFF`."""
     X, sm = est.filter.particles, est.smoother
     T, B, L, nx = X.shape
-    s = sm.transition_weights
-    keep = s > ROW_WEIGHT_CUTOFF
-    u_rows = data.u.unsqueeze(2).expand(T, B, L, data.u.shape[-1])
-    trans = (X[:-1][keep], u_rows[:-1][keep], sm.next_mean[keep], s[keep])
+    # the kept rows' flat indices, found once (a boolean mask per tensor costs one search each),
+    # and the per-step tensors indexed by the rows' steps instead of expanded to every particle
+    Xf = X.reshape(-1, nx)
+    u = data.u.reshape(T * B, -1)
+    s = sm.transition_weights.reshape(-1)
+    rows = torch.nonzero(s > ROW_WEIGHT_CUTOFF).squeeze(-1)
+    trans = (Xf[rows], u[rows // L], sm.next_mean.reshape(-1, nx)[rows], s[rows])
     observed = data.obs_mask.any(-1)  # (T, B)
-    W = torch.exp(sm.log_weights) * observed.unsqueeze(-1)
-    keep = W > ROW_WEIGHT_CUTOFF
-    y = torch.nan_to_num(data.y).unsqueeze(2).expand(T, B, L, data.y.shape[-1])
-    mask = data.obs_mask.unsqueeze(2).expand(T, B, L, data.y.shape[-1])
-    obs = (X[keep], u_rows[keep], y[keep], mask[keep], W[keep])
+    W = (torch.exp(sm.log_weights) * observed.unsqueeze(-1)).reshape(-1)
+    rows = torch.nonzero(W > ROW_WEIGHT_CUTOFF).squeeze(-1)
+    steps = rows // L
+    y = torch.nan_to_num(data.y).reshape(T * B, -1)
+    obs = (Xf[rows], u[steps], y[steps], data.obs_mask.reshape(T * B, -1)[steps], W[rows])
     return trans, obs
 
 
@@ -480,7 +483,7 @@ def observed_information(
             def restricted(v: Tensor, part=part, idx=idx) -> Tensor:
                 return part(w0.index_put((idx,), v))
 
-            h = torch.autograd.functional.hessian(restricted, w0[idx])
+            h = torch.autograd.functional.hessian(restricted, w0[idx], vectorize=True)
             hessian[idx.unsqueeze(-1), idx] = h.detach().cpu()
 
     # the variance of the complete-data score, from pieces of backward-simulated trajectories
@@ -501,7 +504,9 @@ def observed_information(
         params = ll.unpack(w)
         return torch.cat([b.natural_entries(params[b.key]) for b in blocks]) if blocks else w
 
-    J = torch.autograd.functional.jacobian(natural, w0).cpu().numpy() if d else np.zeros((0, 0))
+    J = np.zeros((0, 0))
+    if d:
+        J = torch.autograd.functional.jacobian(natural, w0, vectorize=True).cpu().numpy()
     with np.errstate(invalid="ignore"):
         cov = J @ np.nan_to_num(cov_w) @ J.T
     bad = ~np.isfinite(np.diagonal(cov_w)) if d else np.zeros(0, dtype=bool)
@@ -918,8 +923,22 @@ def _gaussian_moments(
         else:
             return None
         n = e.shape[-1]
-        F = e if Phi is None else torch.cat([e, Phi.reshape(-1, n * Phi.shape[-1])], -1)
-        G = (F * weight.unsqueeze(-1)).mT @ F  # (n + n P, n + n P)
+        root = weight.clamp_min(0.0).sqrt().unsqueeze(-1)  # the weights are not negative
+        if Phi is None:
+            e = e * root
+            G = e.mT @ e
+        else:
+            # the features' columns that are zero on every row (e.g. half of a Kronecker product's)
+            # add nothing: the product over the others only (a third of the work for
+            # LinearTransition), of the rows scaled by the weights' roots (a product of a matrix by
+            # its own transpose: ~3x cheaper than of two)
+            Phi = Phi.reshape(-1, n * Phi.shape[-1])
+            used = torch.nonzero((Phi != 0).any(0)).squeeze(-1)
+            F = torch.cat([e, Phi.index_select(1, used)], -1).mul_(root)
+            Gu = F.mT @ F
+            keep = torch.cat([torch.arange(n, device=used.device), n + used])
+            G = torch.zeros(n + Phi.shape[-1], n + Phi.shape[-1], dtype=Gu.dtype, device=Gu.device)
+            G[keep.unsqueeze(-1), keep] = Gu  # (n + n P, n + n P)
     return G, theta, free, torch.as_tensor(cols, dtype=torch.long), n
 
 
@@ -970,19 +989,26 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
         q = (z * z).sum(-1)
         nu = dof
         lam = (nu + p) / (nu + q)
-        dq = torch.zeros(x.shape[0], w0.numel(), dtype=w0.dtype, device=w0.device)
+        # dq only in the columns q depends on (g's and Rv's; not dof's, nor f's and Rw's)
+        parts = []
         if Jg is not None:
-            dq[:, g_cols] = -2.0 * _row_products(v, Jg)
+            parts.append((list(g_cols), -2.0 * _row_products(v, Jg)))
         if "Rv" in col:
             diagonal = (torch.arange(p * (p + 1) // 2, device=w0.device) < p).to(w0.dtype)
-            dq[:, col["Rv"]] = -2.0 * (_cholesky_scores(C, z, v, 1.0) + diagonal)
-        h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
-        H = (dq * (W * h_qq).unsqueeze(-1)).mT @ dq
+            rv_cols = list(range(col["Rv"].start, col["Rv"].stop))
+            parts.append((rv_cols, -2.0 * (_cholesky_scores(C, z, v, 1.0) + diagonal)))
+        H = torch.zeros(w0.numel(), w0.numel(), dtype=w0.dtype, device=w0.device)
+        if parts:
+            idx = torch.as_tensor(sum((c for c, _ in parts), []), device=w0.device)
+            dq = torch.cat([value for _, value in parts], -1)  # (R, columns of idx)
+            h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
+            H[idx.unsqueeze(-1), idx] = (dq * (W * h_qq).unsqueeze(-1)).mT @ dq
         if "dof" in col:
             k = col["dof"].start
-            cross = (W * (-nu * (q - p) / (2.0 * (nu + q) ** 2))).unsqueeze(-1) * dq
-            H[k] += cross.sum(0)
-            H[:, k] += cross.sum(0)
+            if parts:
+                cross = dq.mT @ (W * (-nu * (q - p) / (2.0 * (nu + q) ** 2)))
+                H[k, idx] += cross
+                H[idx, k] += cross
             l_nu = (
                 0.5 * torch.digamma(0.5 * (nu + p)) - 0.5 * torch.digamma(0.5 * nu) - 0.5 * p / nu
                 - 0.5 * torch.log1p(q / nu) + 0.5 * (nu + p) * q / (nu * (nu + q))
@@ -1001,7 +1027,7 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
     def weighted(w: Tensor) -> Tensor:
         return _gaussian_term(moments, w, ll.unpack(w).get("Rv", ll.model.noise.Rv), None, 0.0)
 
-    return H + torch.autograd.functional.hessian(weighted, w0)
+    return H + torch.autograd.functional.hessian(weighted, w0, vectorize=True)
 
 
 def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observed: bool) -> Tensor:
@@ -1043,14 +1069,18 @@ def _windowed_covariance(
     ``V1 = sum_k c_k (sum_{j=k}^{k+K} c_j)^T``.  ``lag`` sets ``K`` instead (tests).
     """
     G, n, B, M, d = scores.shape
-    # autocovariance of each parameter's centred score by FFT over the pieces' steps, summed over
-    # (at most _WINDOW_PATHS) draws, the pieces and the sequences, per lag divided by its number of
-    # pairs: it only chooses the window
+    # autocovariance of each parameter's centred score over the pieces' steps, summed over (at most
+    # _WINDOW_PATHS) draws, the pieces and the sequences, per lag divided by its number of pairs: it
+    # only chooses the window.  From the products of all pairs of steps, one batched product of
+    # (d, n, draws) by its transpose, summed along the diagonals (~7x cheaper than by FFT for
+    # the pieces' ~70 steps)
     some = scores[:, :, :, :_WINDOW_PATHS]
-    some = some - some.mean(3, keepdim=True)
-    size = 1 << int(np.ceil(np.log2(2 * n)))
-    F = torch.fft.rfft(some, n=size, dim=1)
-    acov = torch.fft.irfft((F * F.conj()).real.sum((0, 2, 3)), n=size, dim=0)[:n]  # (n, d)
+    some = (some - some.mean(3, keepdim=True)).permute(4, 1, 0, 2, 3).reshape(d, n, -1)
+    S = some @ some.mT  # (d, n, n): sum over the series of s_i s_j
+    ar = torch.arange(n, device=S.device)
+    cols = ar.unsqueeze(-1) + ar  # (i, k) -> i + k
+    S = torch.cat([S, torch.zeros_like(S)], -1)  # S[:, i, i + k] is 0 past the last step
+    acov = torch.gather(S, 2, cols.expand(d, n, n)).sum(1).T  # (n, d): lag k summed over i
     acov = (acov / torch.arange(n, 0, -1, dtype=acov.dtype, device=acov.device).unsqueeze(-1)).cpu().numpy()
     rho = acov / np.where(acov[:1] > 0, acov[:1], 1.0)
     tau = 1.0 + 2.0 * np.cumsum(rho[1:], axis=0)  # tau(K) for K = 1 .. n-1
