@@ -110,15 +110,22 @@ def test_noise_extrapolation_leaves_particle_noise_and_held_noise_alone():
     zigzag = [_noisy(base, [[1e-3]], [[0.05 * np.exp(v)]], 2.0) for v in (0.0, 0.3, 0.1)]
     ex.start(zigzag[0])
     assert ex.propose(zigzag[1], False) is None and ex.propose(zigzag[2], False) is None
-    held = [_noisy(base, [[1e-3]], [[0.05 * 0.6**k]], 2.0) for k in range(3)]  # Rv converging
+    held = [_noisy(base, [[1e-3]], [[0.05 * np.exp(0.6**k)]], 2.0) for k in range(3)]  # Rv converging
     ex.start(held[0])
     ex.propose(held[1], False)
     jumped = ex.propose(held[2], False)
     assert jumped is not None and float(jumped.Rw) == pytest.approx(1e-3, rel=1e-12)
-    assert float(jumped.Rv) < float(held[2].Rv)
+    assert float(jumped.Rv) == pytest.approx(0.05, rel=1e-9)
     ex.start(held[0])
     ex.propose(held[1], False)
     assert ex.propose(held[2], rejected=True) is None and len(ex.points) == 1
+    # blocks named in `held` stay at EM's iterate (Rw while the Newton steps run)
+    both = [_noisy(base, [[1e-3 * np.exp(0.8 * 0.6**k)]], [[0.05 * np.exp(0.6**k)]], 2.0) for k in range(3)]
+    ex.start(both[0])
+    ex.propose(both[1], False)
+    jumped = ex.propose(both[2], False, held=("Rw",))
+    assert jumped is not None and float(jumped.Rw) == pytest.approx(float(both[2].Rw), rel=1e-12)
+    assert float(jumped.Rv) == pytest.approx(0.05, rel=1e-9)
 
 
 def test_an_accelerated_fit_records_its_newton_steps_and_loses_no_likelihood():

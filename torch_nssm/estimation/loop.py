@@ -305,11 +305,10 @@ def run_em(
                     if step.taken:
                         newton, previous_step = em_step, step.delta
                 histories[0]["accelerated"].append(newton is not None)
-            if extrapolation is not None and still and accelerating:  # the noise's turn comes after
-                extrapolation.start(models[0])  # the Newton steps (its jumps would move their maximum)
-            elif extrapolation is not None and still:
+            if extrapolation is not None and still:  # the measurement noise jumps from the start,
+                # the process noise once the Newton steps end (its jumps moved their maximum)
                 rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
-                extrapolated = extrapolation.propose(models[0], rejected)
+                extrapolated = extrapolation.propose(models[0], rejected, ("Rw",) if accelerating else ())
                 if extrapolated is not None:
                     newton = _snapshot(models[0]) if newton is None else newton  # the M-step's
                     models[0] = extrapolated
