@@ -10,7 +10,6 @@ that had come back (docs/design.md, "Many fits on many machines").
 
 from __future__ import annotations
 
-import ctypes
 import os
 import sys
 import warnings
@@ -140,10 +139,6 @@ def _run_on_dask(client, tasks: Sequence[tuple], fn: Callable):
         raise death
 
 
-#: glibc's ``mallopt`` parameters, and the values its dynamic thresholds reach (mmap threshold at
-#: most 32 MiB on 64-bit systems, trim threshold twice that).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_MMAP_THRESHOLD, _TRIM_THRESHOLD = 32 << 20, 64 << 20
 _allocator_tuned = False
 
 
@@ -160,12 +155,9 @@ def _tune_allocator() -> None:
     if _allocator_tuned or "MALLOC_TRIM_THRESHOLD_" not in os.environ or not sys.platform.startswith("linux"):
         return
     _allocator_tuned = True
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
-        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD)
-    except (OSError, AttributeError):  # not glibc
-        pass
+    from ._workspace import set_malloc_thresholds
+
+    set_malloc_thresholds()
 
 
 def _indexed_on_dask(i: int, fn: Callable, args: tuple):

@@ -101,6 +101,11 @@ def tune_allocator() -> None:
         return
     if any(k.startswith("MALLOC_") for k in os.environ):
         return
+    set_malloc_thresholds()
+
+
+def set_malloc_thresholds() -> None:
+    """Set glibc's mmap and trim thresholds to 32 and 64 MiB (nothing where libc is not glibc)."""
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
