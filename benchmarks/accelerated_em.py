@@ -110,13 +110,11 @@ def _iterations(hist: np.ndarray, final: np.ndarray, se: np.ndarray) -> int:
     return 0 if outside.size == 0 else int(outside[-1] + 1)
 
 
-def _noise(est, se: dict | None = None) -> np.ndarray:
-    """The noise parameters of every iterate (``Rw``'s and ``Rv``'s diagonals, the dof), or of
-    the standard errors ``se``, as columns."""
+def _noise(est, keys, se: dict | None = None) -> np.ndarray:
+    """The noise parameters ``keys`` of every iterate (``Rw``'s and ``Rv``'s diagonals, the dof),
+    or of the standard errors ``se``, as columns."""
     cols = []
-    for key in NOISE_KEYS:
-        if key not in est.history_:
-            continue
+    for key in keys:
         values = [np.asarray(se[key], float)] if se is not None else est.history_[key]
         cols.append(
             np.stack([np.diagonal(v) if v.ndim == 2 else np.ravel(v) for v in map(np.asarray, values)])
@@ -140,8 +138,11 @@ def run(name: str, n_iter: int, tail: int, seed: int = 0) -> list[dict]:
     se = np.asarray(se, float)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        se_all = np.concatenate([se, _noise(plain, plain.standard_errors_)[0]])
-    noise = {acc: _noise(e) for acc, (e, *_) in fits.items()}
+        errors = plain.standard_errors_
+    # the estimated noise parameters (a held Rw has no standard error)
+    noise_keys = [k for k in NOISE_KEYS if k in errors and all(k in e.history_ for e, *_ in fits.values())]
+    se_all = np.concatenate([se, _noise(plain, noise_keys, errors)[0]])
+    noise = {acc: _noise(e, noise_keys) for acc, (e, *_) in fits.items()}
     everything = {acc: np.concatenate([hists[acc], noise[acc]], 1) for acc in fits}
     final_all = everything[None][-tail:].mean(0)
     lls = {acc: np.asarray(e.history_["log_likelihood"], float) for acc, (e, *_) in fits.items()}
