@@ -190,6 +190,8 @@ SQUAREM_MIN_COSINE = 0.5
 SQUAREM_MIN_STEP = 0.5
 
 
+# The matrix logarithm, not the information's log-Cholesky working scale (uncertainty._Block): it
+# does not depend on the order of the states, so a jump is the same whichever state comes first.
 def _sym_log(a: np.ndarray) -> np.ndarray | None:
     """Matrix logarithm of a symmetric positive-definite matrix (``None`` if it is not one)."""
     e, v = np.linalg.eigh(a)
@@ -199,6 +201,7 @@ def _sym_log(a: np.ndarray) -> np.ndarray | None:
 
 
 def _sym_exp(a: np.ndarray) -> np.ndarray:
+    """Matrix exponential of a symmetric matrix (symmetrised first)."""
     e, v = np.linalg.eigh((a + a.T) / 2)
     return (v * np.exp(e)) @ v.T
 
@@ -292,10 +295,10 @@ class NoiseExtrapolation:
         self.start(model)
 
     def _apply(self, model: StateSpaceModel, jumps: dict[str, np.ndarray]) -> StateSpaceModel:
-        def value(a: np.ndarray, like: torch.Tensor, name: str) -> torch.Tensor:
+        def value(a: np.ndarray, like: torch.Tensor) -> torch.Tensor:
             a = _sym_exp(a) if a.ndim == 2 else np.clip(np.exp(a), *self.dof_bounds)
             return torch.as_tensor(a, dtype=like.dtype, device=like.device).reshape(like.shape)
 
-        Rw = value(jumps["Rw"], model.Rw, "Rw") if "Rw" in jumps else model.Rw
-        noise = {n: value(a, getattr(model.noise, n), n) for n, a in jumps.items() if n != "Rw"}
+        Rw = value(jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
+        noise = {n: value(a, getattr(model.noise, n)) for n, a in jumps.items() if n != "Rw"}
         return dataclasses.replace(model, Rw=Rw, noise=model.noise.replace(**noise))

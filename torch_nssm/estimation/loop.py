@@ -294,39 +294,34 @@ def run_em(
                     histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
                 models[g] = new
                 still.append(g)
-            newton = None  # while the Newton step replaces the M-step's: the M-step's, to go back to
-            if at is not None and still:
-                if not any(report[label].rejected for report in result.reports for label in ("f", "g")):
-                    em_step = _snapshot(models[0])
+            em_iterate = None  # while an accelerated step replaces the M-step's: the M-step's iterate
+            if extrapolation is not None and still:  # (single fits with acceleration="newton")
+                rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
+                if at is not None and not rejected:
+                    snapshot = _snapshot(models[0])
                     step = newton_step(at, models[0], previous_step, max_factor)
                     if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
                         max_factor /= 2.0
                     accelerating = not step.done and max_factor >= 2.0
                     if step.taken:
-                        newton, previous_step = em_step, step.delta
-                histories[0]["accelerated"].append(newton is not None)
-            if extrapolation is not None and still:  # the measurement noise jumps from the start,
-                # the process noise once the Newton steps end (its jumps moved their maximum)
-                rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
+                        em_iterate, previous_step = snapshot, step.delta
+                # the measurement noise jumps from the start, the process noise once the Newton
+                # steps end (its jumps moved their maximum)
                 extrapolated = extrapolation.propose(models[0], rejected, ("Rw",) if accelerating else ())
                 if extrapolated is not None:
-                    newton = _snapshot(models[0]) if newton is None else newton  # the M-step's
+                    em_iterate = _snapshot(models[0]) if em_iterate is None else em_iterate
                     models[0] = extrapolated
-                flags = histories[0]["accelerated"]
-                if at is not None:  # the Newton branch has flagged this iterate
-                    flags[-1] = flags[-1] or extrapolated is not None
-                else:
-                    flags.append(extrapolated is not None)
+                histories[0]["accelerated"].append(em_iterate is not None)
             if still:
                 try:
                     batch = estep(still, it + 1)
-                    lost = newton is not None and (
+                    lost = em_iterate is not None and (
                         lls[0][-1] - float(last[0][0].log_likelihood.sum()) > newton_tolerance(n_obs[0])
                     )
                 except (NumericalError, torch.linalg.LinAlgError) as exc:
-                    batch, failure, lost = None, str(exc), newton is not None
+                    batch, failure, lost = None, str(exc), em_iterate is not None
                 if lost:  # the accelerated step lost likelihood or failed: the M-step's instead
-                    models[0], accelerating = _restore(newton), False  # Newton: EM from here
+                    models[0], accelerating = _restore(em_iterate), False  # Newton: EM from here
                     histories[0]["accelerated"][-1] = False
                     if extrapolation is not None:  # the noise: shorter jumps, a new cycle at the M-step's
                         extrapolation.undone(models[0])
