@@ -158,7 +158,7 @@ def _arrays(est: EStepOutput | None) -> list:
         return []
     f, s = est.filter, est.smoother
     return [
-        f.particles, f.log_weights, f.ancestors, f.noise_statistics,
+        f.particles, f.log_weights, f.ancestors,  # (f.noise_statistics: dropped, now e_log_lam)
         s.log_weights, s.weights, s.next_mean, s.transition_weights, est.e_lam, est.e_log_lam,
     ]  # fmt: skip
 

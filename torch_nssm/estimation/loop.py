@@ -10,7 +10,6 @@ iterates and the final E-step, and a clean stop on Ctrl-C.
 
 from __future__ import annotations
 
-import copy
 import math
 from collections import defaultdict
 from dataclasses import dataclass, field, replace
@@ -24,7 +23,7 @@ from ..inference.random import SequenceStreams
 from .acceleration import MAX_FACTOR, NoiseExtrapolation, information_at, newton_step, newton_tolerance
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
-from .mstep import MStepOptions, m_step
+from .mstep import MStepOptions, m_step, module_state
 
 __all__ = ["EMOptions", "EMResult", "run_em", "CONVERGENCE_WINDOW"]
 
@@ -165,7 +164,7 @@ class _Batch:
 
 
 def _snapshot(model: StateSpaceModel):
-    return model, copy.deepcopy(model.f.state_dict()), copy.deepcopy(model.g.state_dict())
+    return model, module_state(model.f), module_state(model.g)
 
 
 def _restore(snapshot) -> StateSpaceModel:

@@ -391,7 +391,7 @@ def m_step(
     groups = _Groups(shared, data.n_sequences)
     if len(models) != groups.n:
         raise ValueError(f"expected {groups.n} models for {data.n_sequences} sequences, got {len(models)}")
-    backups = [(_backup(m.f), _backup(m.g)) for m in models]
+    backups = [(module_state(m.f), module_state(m.g)) for m in models]
     fs, gs = [m.f for m in models], [m.g for m in models]
     Rw_old = _stack([m.Rw for m in models], groups)
     noise_old = models[0].noise if shared else type(models[0].noise).stack([m.noise for m in models])
@@ -431,7 +431,7 @@ def m_step(
     return MStepResult(new_models, errors, reports)
 
 
-def _backup(module: nn.Module) -> OrderedDict:
+def module_state(module: nn.Module) -> OrderedDict:
     """A copy of ``module``'s state for ``load_state_dict``: its tensors cloned (``deepcopy`` of the
     whole state dict cost 5-20 ms per M-step for 100 independent fits' 200 modules, ~1 ms this
     way), anything else deep-copied, the version metadata kept."""

@@ -159,7 +159,7 @@ def ffbsm(
     Cinv_t = _whitening(model, B, X)
     trans = data.transition_mask  # (T-1, B)
 
-    log_ws = torch.empty_like(logW)
+    log_ws = _workspace.empty(logW.shape, logW.dtype, logW.device)  # every entry written below
     log_ws[T - 1] = logW[T - 1]
     # [s, m^T] of every step (T-1, B, 1 + nx, L), m about the step's centre c (centres)
     sm_all = torch.empty(T - 1, B, 1 + nx, L, dtype=kdtype, device=device)
@@ -295,8 +295,8 @@ def _pairwise_statistics(
     T, B, L, nx = X.shape
     dtype = X.dtype
     trans = data.transition_mask
-    next_mean = torch.empty(T - 1, B, L, nx, dtype=dtype, device=X.device)
-    trans_w = torch.empty(T - 1, B, L, dtype=dtype, device=X.device)
+    next_mean = _workspace.empty((T - 1, B, L, nx), dtype, X.device)  # every block written below
+    trans_w = _workspace.empty((T - 1, B, L), dtype, X.device)
     scatter = torch.zeros(B, nx, nx, dtype=dtype, device=X.device)
     for blk in time_blocks(T - 1, B * L):
         nxt = slice(blk.start + 1, blk.stop + 1)
@@ -814,6 +814,8 @@ def backward_segments(
     G = first.numel()
     if G == 0 or n < 1 or int(first.min()) < 0 or int(first.max()) + n > T:
         raise ValueError(f"pieces of length {n} at {list(starts)} do not fit in {T} steps")
+    if S > 53:
+        raise ValueError(f"max_tries must be at most 53, got {max_tries}")
     ends = first + n - 1
     if log_weights is None:
         if bool((ends != T - 1).any()):
@@ -826,8 +828,6 @@ def backward_segments(
     GB = G * B
     Js = torch.empty(G, n, B, M, dtype=torch.long, device=device)
     Js[:, n - 1] = _draw(log_weights[ends], M, generator)  # (G, B, M)
-    if S > 53:
-        raise ValueError(f"max_tries must be at most 53, got {max_tries}")
     # the tries come in rounds: S1 for every index, drawn for blocks of steps before the loop, then
     # rounds of twice as many as the last for the indices none of the earlier ones accepted, drawn
     # in the loop (with acceptance rates about 0.4-0.5 the first round leaves a tenth; a try costs
