@@ -730,7 +730,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             f"free-run errors {after:.4g} after EM, {before:.4g} after the first stage): the process noise "
             "is carrying what f should simulate"
         )
-        if self.fit_Rw != "auto" or not self.fit_Rw_:
+        if self.fit_Rw != "auto":
             warnings.warn(
                 f"{said}. For a simulation model hold it (fit_Rw=False with a small Rw_init, or "
                 "fit_Rw='auto'), or keep the first stage's parameters",

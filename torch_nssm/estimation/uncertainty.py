@@ -466,7 +466,7 @@ def observed_information(
             try:
                 t_hessian = _student_t_observation_hessian(ll, w0, obs)
             except _NotLinear:  # its forward is not offset + Phi theta: autograd below
-                t_hessian = None
+                pass
 
     hessian = torch.zeros(d, d, dtype=dtype)
     owner = np.concatenate([[b.key.startswith("f.") or b.key == "Rw"] * b.n_working for b in blocks] or [[]])
@@ -728,23 +728,34 @@ def _module_columns(ll: _LogLikelihood, label: str) -> tuple[list[int], list[_Bl
     return cols, parts
 
 
-def _module_jacobian(ll: _LogLikelihood, label: str, w: Tensor, x: Tensor, u: Tensor):
+def _linear_features(module: nn.Module, x: Tensor, u: Tensor, dtype: torch.dtype):
+    """``(Phi, offset, theta, free)`` of a module linear in its parameters on rows ``x``, ``u``
+    (its free entries' indices ``free``); :class:`_NotLinear` where its forward is not
+    ``offset + Phi theta`` (checked on the first rows)."""
+    with torch.no_grad():
+        Phi, offset = module.features(x, u)
+        theta = module.theta().detach().to(dtype)
+        head = slice(0, 8)
+        if not _matches_features(module, x[head], u[head], Phi[head], offset[head], theta):
+            raise _NotLinear(f"{type(module).__name__}.forward is not offset + Phi theta")
+        free = torch.nonzero(module.free_mask()).squeeze(-1)
+    return Phi, offset, theta, free
+
+
+def _module_jacobian(
+    ll: _LogLikelihood, label: str, w: Tensor, x: Tensor, u: Tensor, linear: tuple | None = None
+):
     """``module(x, u)`` ``(R, out)`` at the working parameters ``w``, its Jacobian in the module's
     working parameters ``(R, out, d_module)`` (``None`` without free parameters) and their columns
     in ``w``.
 
     For a module linear in its parameters the value is ``offset + Phi theta`` and the Jacobian
-    ``Phi``'s free columns; otherwise forward mode, all rows at once."""
+    ``Phi``'s free columns (``linear``: its :func:`_linear_features` on these rows, if already at
+    hand); otherwise forward mode, all rows at once."""
     module = ll.model.f if label == "f" else ll.model.g
     cols, parts = _module_columns(ll, label)
     if cols and _linear_in_parameters(module):
-        with torch.no_grad():
-            Phi, offset = module.features(x, u)
-            theta = module.theta().detach().to(w.dtype)
-            free = torch.nonzero(module.free_mask()).squeeze(-1)
-            head = slice(0, 8)
-            if not _matches_features(module, x[head], u[head], Phi[head], offset[head], theta):
-                raise _NotLinear(f"{type(module).__name__}.forward is not offset + Phi theta")
+        Phi, offset, theta, free = linear or _linear_features(module, x, u, w.dtype)
         value = offset + (Phi @ theta.unsqueeze(-1)).squeeze(-1)
         return value, (Phi if free.numel() == theta.numel() else Phi[..., free]), cols
     with torch.no_grad():
@@ -899,13 +910,20 @@ def _row_products(a: Tensor, J: Tensor) -> Tensor:
 
 
 def _gaussian_moments(
-    ll: _LogLikelihood, label: str, x: Tensor, u: Tensor, target: Tensor, weight: Tensor
+    ll: _LogLikelihood,
+    label: str,
+    x: Tensor,
+    u: Tensor,
+    target: Tensor,
+    weight: Tensor,
+    linear: tuple | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
     """For a Gaussian term ``sum_r w_r log N(target_r; m(x_r, u_r), Sigma)`` whose mean
     ``m = offset + Phi theta`` is linear in the module's parameters: the weighted moments that
     give ``E(theta) = sum_r w_r e_r e_r^T``, ``e_r = target_r - m_r``, for any ``theta``
     (docs/method.md §4, as the M-step's normal equations), and the module's ``theta``, its free
-    entries and their columns in ``w``.  ``None`` where the module is not linear in its parameters."""
+    entries and their columns in ``w``.  ``None`` where the module is not linear in its parameters
+    (``linear``: its :func:`_linear_features` on these rows, if already at hand)."""
     module = ll.model.f if label == "f" else ll.model.g
     cols, _ = _module_columns(ll, label)
     with torch.no_grad():
@@ -913,12 +931,10 @@ def _gaussian_moments(
             e, Phi = target - module(x, u), None
             theta = free = None
         elif _linear_in_parameters(module):
-            Phi, offset = module.features(x, u)
-            theta = module.theta().detach().to(x.dtype)
-            head = slice(0, 8)
-            if not _matches_features(module, x[head], u[head], Phi[head], offset[head], theta):
+            try:
+                Phi, offset, theta, free = linear or _linear_features(module, x, u, x.dtype)
+            except _NotLinear:
                 return None
-            free = torch.nonzero(module.free_mask()).squeeze(-1)
             e = target - offset
         else:
             return None
@@ -978,8 +994,12 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
     x, u, y, mask, W = obs
     col = _columns(ll)
     params = ll.unpack(w0)
+    g = ll.model.g  # its features once, for its Jacobian and its moments
+    linear = None
+    if _module_columns(ll, "g")[0] and _linear_in_parameters(g):
+        linear = _linear_features(g, x, u, w0.dtype)
     with torch.no_grad():
-        gx, Jg, g_cols = _module_jacobian(ll, "g", w0, x, u)
+        gx, Jg, g_cols = _module_jacobian(ll, "g", w0, x, u, linear)
         Rv = params["Rv"] if "Rv" in params else ll.model.noise.Rv.detach().to(w0.dtype)
         dof = params["dof"] if "dof" in params else ll.model.noise.dof.detach().to(w0.dtype)
         p = y.shape[-1]
@@ -1020,7 +1040,7 @@ def _student_t_observation_hessian(ll: _LogLikelihood, w0: Tensor, obs) -> Tenso
                 + 0.5 * q * (nu * (nu + q) - (nu + p) * (2.0 * nu + q)) / (nu**2 * (nu + q) ** 2)
             )
             H[k, k] += (W * (nu * l_nu + nu**2 * l_nunu)).sum()
-        moments = _gaussian_moments(ll, "g", x, u, y, W * lam)
+        moments = _gaussian_moments(ll, "g", x, u, y, W * lam, linear)
     if moments is None:
         return None
 
