@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
-from torch_nssm.inference.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf
-from torch_nssm.inference.smoothing import _independent_mh, _log_kernel, _proposals
+from torch_nssm.inference.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf, systematic
+from torch_nssm.inference.smoothing import _mcmc_block
 
 
 @pytest.mark.parametrize(
@@ -38,46 +38,56 @@ def test_broadcast_leading_and_time_blocks():
     assert len(list(time_blocks(5, 10**9))) == 5  # at least one step per block
 
 
-def _weights(L=12, seed=2):
-    g = torch.Generator().manual_seed(seed)
-    return torch.log_softmax(2.0 * torch.randn(1, L, dtype=torch.float64, generator=g), -1)
+def _mh_law(start: int, q: np.ndarray, pi: np.ndarray, steps: int) -> np.ndarray:
+    """Exact law after ``steps`` independent Metropolis-Hastings moves from ``start`` (proposal
+    ``q``, target ``pi``), by the chain's transition matrix."""
+    L = q.size
+    with np.errstate(divide="ignore", invalid="ignore"):  # q = 0: never proposed (P = 0 there)
+        ratio = np.divide.outer(q, q) * np.divide.outer(pi, pi).T  # [a, b]: pi_b q_a / (pi_a q_b)
+    P = q[None, :] * np.minimum(1.0, np.nan_to_num(ratio, nan=0.0, posinf=1.0))
+    P[np.arange(L), np.arange(L)] = 0.0
+    P[np.arange(L), np.arange(L)] = 1.0 - P.sum(1)
+    law = np.zeros(L)
+    law[start] = 1.0
+    for _ in range(steps):
+        law = law @ P
+    return law
 
 
-def test_mcmc_proposals_are_distributed_as_the_weights_at_every_position():
-    """Each proposal (whatever trajectory it is offered to) is a draw from W."""
-    log_w = _weights()
-    W = torch.exp(log_w)[0].numpy()
-    n, reps = 8, 20000
-    g = torch.Generator().manual_seed(3)
-    props = _proposals(log_w.expand(reps, -1), n, 2, g)  # (reps, 2, n)
-    for step in range(2):
-        for pos in (0, n // 2, n - 1):
-            freq = np.bincount(props[:, step, pos].numpy(), minlength=W.size) / reps
-            se = np.sqrt(W * (1 - W) / reps)
-            assert np.all(np.abs(freq - W) < 5 * se + 1e-12)
-
-
-def test_independent_mh_leaves_the_backward_kernel_invariant_and_converges():
-    """Exact draws from pi(i) ~ W_i exp(-|zx - zf_i|^2 / 2) stay exact; a bad start converges."""
-    L, M = 12, 40000
-    log_w = _weights(L)
+@pytest.mark.parametrize("resampled", [True, False])
+@pytest.mark.parametrize("streams", [False, True])
+@pytest.mark.parametrize("steps", [1, 3])
+def test_mcmc_backward_moves_have_the_exact_law(resampled, streams, steps):
+    """The MCMC backward pass's indices after ``steps`` moves are distributed exactly as the
+    Metropolis-Hastings chain from the genealogical parent with proposals from the ancestry
+    (``c_i / L``) targeting ``c_i exp(-|z_x - z_f^i|^2 / 2)`` after a resampling and
+    ``W_i exp(...)`` where the step kept its particles (``c = 1``); many moves reach the target."""
+    L, M = 10, 40000
     g = torch.Generator().manual_seed(4)
-    zf = torch.randn(1, L, 1, dtype=torch.float64, generator=g)
-    zx = torch.full((1, M, 1), 0.3, dtype=torch.float64)
-    log_pi = log_w[0] - 0.5 * (0.3 - zf[0, :, 0]) ** 2
-    pi = torch.softmax(log_pi, -1).numpy()
-    exact = torch.multinomial(torch.tensor(pi), M, replacement=True, generator=g).unsqueeze(0)
-    se = np.sqrt(pi * (1 - pi) / M)
-    for start, steps in ((exact, 2), (torch.zeros(1, M, dtype=torch.long), 30)):
-        props = _proposals(log_w, M, steps, g)
-        log_us = torch.log(torch.rand(1, steps, M, dtype=torch.float64, generator=g))
-        J = _independent_mh(start, zf, zx, props, log_us)
-        freq = np.bincount(J[0].numpy(), minlength=L) / M
-        assert np.all(np.abs(freq - pi) < 5 * se + 1e-12), (freq, pi)
-    assert _log_kernel(zf, torch.zeros(1, 1, dtype=torch.long), zx[:, :1]).item() == pytest.approx(
-        -0.5 * (0.3 - zf[0, 0, 0].item()) ** 2, abs=1e-12
-    )
-    assert math.isfinite(float(log_pi.sum()))
+    log_w = torch.log_softmax(2.0 * torch.randn(1, 1, L, dtype=torch.float64, generator=g), -1)
+    if resampled:  # systematic resampling of W: some particles have no child, some several
+        anc = systematic(log_w[0], generator=g).unsqueeze(0)
+    else:
+        anc = torch.arange(L).view(1, 1, L)
+    ancestors = torch.cat([torch.arange(L).view(1, 1, L), anc])
+    zf = torch.randn(1, 1, L, 1, dtype=torch.float64, generator=g)
+    zx = torch.randn(1, 1, L, 1, dtype=torch.float64, generator=g)
+    j0 = 3  # every trajectory passes through particle 3 at k + 1
+    Js = torch.full((2, 1, M), j0, dtype=torch.long)
+    draws = torch.rand(1, 1, 2 * steps * M, dtype=torch.float64, generator=g) if streams else None
+    _mcmc_block(Js, slice(0, 1), zf, zx, ancestors, log_w, torch.ones(1, 1, dtype=torch.bool), [True],
+                steps, g, draws, None)
+    c = np.bincount(anc.view(-1).numpy(), minlength=L).astype(float)
+    prior = c if resampled else torch.exp(log_w).view(-1).numpy()
+    pi = prior * np.exp(-0.5 * (zx[0, 0, j0, 0].item() - zf[0, 0, :, 0].numpy()) ** 2)
+    pi /= pi.sum()
+    law = _mh_law(int(anc.view(-1)[j0]), c / L, pi, steps)
+    freq = np.bincount(Js[0, 0].numpy(), minlength=L) / M
+    se = np.sqrt(law * (1 - law) / M)
+    assert np.all(np.abs(freq - law) < 5 * se + 1e-12), (freq, law)
+    assert np.all(freq[c == 0] == 0)  # childless particles are never proposed after a resampling
+    # the chain converges to its target
+    assert np.abs(_mh_law(int(anc.view(-1)[j0]), c / L, pi, 200) - pi).max() < 1e-6
 
 
 @pytest.mark.parametrize("case", ["spread", "degenerate", "zeros"])

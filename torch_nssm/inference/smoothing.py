@@ -22,7 +22,7 @@ time: each backward index is proposed from the filter weights and accepted with 
 ``exp(-|z_x^j - z_f^i|^2 / 2) <= 1`` (rejection sampling, Douc et al. 2011), or moved by
 independent Metropolis-Hastings steps started at the particle's genealogical parent (the MCMC
 backward kernel of Bunch & Godsill 2013, Dau & Chopin 2022), with independent proposals
-from the filter weights (one move per index by default, as in Dau & Chopin).  Pure rejection
+from the resampling ancestry (one move per index by default, as in Dau & Chopin).  Pure rejection
 has unbounded expected cost, so after ``max_tries`` failed proposals the remaining indices are
 drawn exactly (``O(L)`` each).  The trajectories yield the same statistics as FFBSm, estimated by counts.
 """
@@ -352,18 +352,6 @@ def _draw(log_weights: Tensor, n: int, generator) -> Tensor:
     return inverse_cdf(cdf, u).view(*lead, n)
 
 
-def _proposals(log_weights: Tensor, n: int, steps: int, generator) -> Tensor:
-    """``steps`` sets of ``n`` i.i.d. proposals per row from the filter weights ``(..., L)``:
-    ``(..., steps, n)``.
-
-    Independent draws matter: a cheaper systematic sample read from a random offset has the right
-    marginals, but couples the proposals of different trajectories and steps so strongly that an
-    average over trajectories is far noisier (tried: after two moves from exact draws, a histogram
-    of 40,000 trajectories was off by up to 16 standard errors).
-    """
-    return _draw(log_weights, n * steps, generator).view(*log_weights.shape[:-1], steps, n)
-
-
 def _sq_dist(zf: Tensor, idx: Tensor, zx_traj: Tensor) -> Tensor:
     """``|z_x^m - z_f^{idx_m}|^2`` for candidate ancestors ``idx`` (B, M) of trajectories (B, M, nx)."""
     if zf.shape[-1] == 1:
@@ -375,25 +363,6 @@ def _sq_dist(zf: Tensor, idx: Tensor, zx_traj: Tensor) -> Tensor:
 def _log_kernel(zf: Tensor, idx: Tensor, zx_traj: Tensor) -> Tensor:
     """``-|z_x^j - z_f^i|^2 / 2`` for candidate ancestors ``idx`` (B, M) of trajectories (B, M, nx)."""
     return -0.5 * _sq_dist(zf, idx, zx_traj)
-
-
-def _independent_mh(J: Tensor, zf: Tensor, zx: Tensor, props: Tensor, log_us: Tensor) -> Tensor:
-    """Independent Metropolis-Hastings moves of backward indices ``J`` ``(B, M)``.
-
-    The target of trajectory ``m`` is the backward kernel ``pi(i) ~ W_i exp(-|z_x^m - z_f^i|^2 / 2)``;
-    ``props`` ``(B, S, M)`` are ``S`` proposals per trajectory drawn from ``W`` (so the acceptance
-    ratio is the ratio of the transition densities); ``log_us`` ``(B, S, M)`` are log-uniforms.
-    Each move leaves ``pi`` invariant.
-    """
-    d = _sq_dist(zf, J, zx)
-    for step in range(props.shape[1]):
-        prop = props[:, step]
-        d_prop = _sq_dist(zf, prop, zx)
-        accept = 2.0 * log_us[:, step] < d - d_prop
-        J = torch.where(accept, prop, J)
-        if step + 1 < props.shape[1]:
-            d = torch.where(accept, d_prop, d)
-    return J
 
 
 @torch.no_grad()
@@ -527,70 +496,84 @@ def _mcmc_block(
     """The MCMC backward pass over the steps ``blk`` (in reverse): ``Js`` ``(t + 1, B, M)`` holds the
     indices of the steps ``blk.start ... blk.stop`` (the last given, the others written).
 
+    Each index starts at its genealogical parent and makes ``steps`` independent
+    Metropolis-Hastings moves with proposals from the resampling ancestry: the parent
+    ``A_{k+1}[U]`` of a uniformly chosen particle at ``k + 1``.  After a resampling at ``k + 1``
+    the filter at ``k`` is represented by the resampled particles (equal weights: particle ``i``
+    counted ``c_i`` times, its number of children), from which the particles at ``k + 1`` were
+    drawn; the backward kernel of that representation, ``pi(i) ~ c_i exp(-|z_x - z_f^i|^2 / 2)``,
+    has the proposal ``c_i / L`` as its prior part, so a move is accepted with the ratio of the
+    transition densities alone, ``2 log u < d_J - d_{i'}`` with ``d = |z_x - z_f|^2``.  Where a
+    step did not resample (``A_{k+1}`` the identity, ``ess_threshold < 1``) the filter's weights
+    ``W`` enter the ratio, ``2 log u - 2 log W_{i'} < (d_J - 2 log W_J) - d_{i'}`` (uniform
+    proposals).  Either way each move leaves the backward kernel of the filter's particle
+    approximation invariant, and a proposal costs a uniform and a lookup, not an inverse-CDF draw.
+
     Everything that does not depend on the trajectories is made for the whole block before its
-    loop: the proposals from the filter weights, their whitened predictions ``z_f`` (``cand``),
-    ``2 log u`` and, for every particle ``j`` at ``k + 1``, the squared distance ``d0_j`` to its
-    genealogical parent's prediction, so that a trajectory's starting distance is one lookup.
-    Per step: three lookups by the trajectories' indices at ``k + 1`` (``z_x``, the parent,
-    ``d0``) and the Metropolis-Hastings test, the same operations on the same numbers as
-    :func:`_independent_mh` (the same indices bit for bit).  ``draws`` (per-sequence streams):
-    the block's uniforms ``(B, t, 2 S M)`` in reverse time (row ``j``: step ``blk.stop - 1 - j``),
-    each row's ``S M`` proposal uniforms then ``S M`` acceptance uniforms; padded rows restart at
-    ``J_last``.  Without streams they are drawn from ``generator`` in time order.
+    loop: the proposals, their whitened predictions ``z_f`` (``cand``), the thresholds and, for
+    every particle ``j`` at ``k + 1``, the squared distance ``d0_j`` to its genealogical parent's
+    prediction, so that a trajectory's start is one lookup.  Per step: three lookups by the
+    trajectories' indices at ``k + 1`` (``z_x``, the parent, ``d0``) and the test.  ``draws``
+    (per-sequence streams): the block's uniforms ``(B, t, 2 S M)`` in reverse time (row ``j``:
+    step ``blk.stop - 1 - j``), each row's ``S M`` proposal uniforms then ``S M`` acceptance
+    uniforms; padded rows restart at ``J_last``.  Without streams they are drawn from
+    ``generator`` in time order.
     """
     t = blk.stop - blk.start
     B, L, nx = zf.shape[1:]
     M = Js.shape[-1]
+    n = steps * M
+    dtype, device = zf.dtype, zf.device
     A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
-    zf_r = zf
     if draws is None:
-        props = _proposals(logW[blk], M, steps, generator)  # (t, B, S, M)
-        u = torch.rand(t, B, steps, M, dtype=zf.dtype, device=zf.device, generator=generator)
-    else:  # from the draws' layout (B, t, ...) to reversed time-major (t, B, S, M)
-        n = steps * M
+        pick = torch.randint(L, (t, B, n), device=device, generator=generator)
+        u = torch.rand(t, B, steps, M, dtype=dtype, device=device, generator=generator)
+    else:  # from the draws' layout (B, t, ...) in reversed time to time-major (t, B, ...)
         d = draws.view(B, t, 2, n)
-        cdf = cumulative_weights(logW[blk].flip(0).transpose(0, 1)).reshape(B * t, L)
-        u = d[:, :, 0].reshape(B * t, n).contiguous()  # strided: inverse_cdf 3x slower
-        props = inverse_cdf(cdf, u).view(B, t, steps, M).transpose(0, 1).contiguous()
-        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1)  # viewed: read by the log below
-        zf_r = zf.flip(0)  # the predictions in the proposals' reversed order, for their lookup
-    # accept where 2 log u < d - d_prop; time-major and contiguous (a strided threshold made the
-    # loop's comparisons slower than the copy it saves)
-    thr = torch.log(u, out=torch.empty(t, B, steps, M, dtype=u.dtype, device=u.device)).mul_(2.0)
-    # row i of the block's arrays: step blk.start + i; of the proposals' (props, thr, cand): row j
-    idx = props.view(t, B, steps * M)
+        pick = d[:, :, 0].mul(L).long().clamp_(max=L - 1).transpose(0, 1).flip(0)
+        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).flip(0)
+    props = torch.gather(A_next, 2, pick)  # (t, B, S M)
+    thr = torch.log(u).mul_(2.0)  # accept where 2 log u < d - d'
+    kept = (A_next == torch.arange(L, device=device)).all(-1, keepdim=True)  # steps not resampled
+    log_w2 = None
+    if bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
+        log_w2 = torch.where(kept, logW[blk], 0.0).mul_(2.0)
+        thr -= torch.gather(log_w2, 2, props).view(t, B, steps, M)
+    props = props.view(t, B, steps, M)
     if nx == 1:
         zf1, zx1 = zf[..., 0], zx[..., 0]
-        cand = torch.gather(zf_r[..., 0], 2, idx).view(t, B, steps, M)
+        cand = torch.gather(zf1, 2, props.view(t, B, n)).view(t, B, steps, M)
         d0 = zx1 - torch.gather(zf1, 2, A_next)
         d0 = d0 * d0
     else:
-        cand = torch.gather(zf_r, 2, idx.unsqueeze(-1).expand(t, B, steps * M, nx)).view(t, B, steps, M, nx)
+        cand = torch.gather(zf, 2, props.view(t, B, n, 1).expand(t, B, n, nx)).view(t, B, steps, M, nx)
         d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
+    if log_w2 is not None:
+        d0 -= torch.gather(log_w2, 2, A_next)
+        w2_props = torch.gather(log_w2, 2, props.view(t, B, n)).view(t, B, steps, M) if steps > 1 else None
     for k in range(blk.stop - 1, blk.start - 1, -1):
         i = k - blk.start
-        j = i if draws is None else blk.stop - 1 - k
         J_next = Js[i + 1]
         J = torch.gather(A_next[i], 1, J_next)  # the genealogical parents
-        d = torch.gather(d0[i], 1, J_next)  # their squared distances
+        d = torch.gather(d0[i], 1, J_next)  # their squared distances (less 2 log W where not resampled)
         if nx == 1:
             x_next = torch.gather(zx1[i], 1, J_next)  # (B, M)
         else:
             x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
         for s in range(steps):
             if nx == 1:
-                d_prop = x_next - cand[j, :, s]
+                d_prop = x_next - cand[i, :, s]
                 d_prop = d_prop * d_prop
             else:
-                d_prop = squared_norm(x_next - cand[j, :, s])
-            accept = thr[j, :, s] < d - d_prop
-            J = torch.where(accept, props[j, :, s], J)
+                d_prop = squared_norm(x_next - cand[i, :, s])
+            accept = thr[i, :, s] < d - d_prop
+            J = torch.where(accept, props[i, :, s], J)
             if s + 1 < steps:
-                d = torch.where(accept, d_prop, d)
+                d = torch.where(accept, d_prop if log_w2 is None else d_prop - w2_props[i, :, s], d)
         if not all_valid[k]:
             # Rows past a sequence's end restart from the filter (their transitions are masked out):
-            # an i.i.d. draw from the filter, or each sequence's draw at its last step (streams).
-            restart = props[j, :, 0] if draws is None else J_last
+            # an i.i.d. draw from the filter weights, or each sequence's draw at its last step (streams).
+            restart = _draw(logW[k], M, generator) if draws is None else J_last
             J = torch.where(trans[k].unsqueeze(-1), J, restart)
         Js[i] = J
 
