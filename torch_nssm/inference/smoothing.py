@@ -448,7 +448,8 @@ def ffbsi(
         zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
         if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
             n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
-            draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), dtype, reverse=True)
+            kind = _UNIFORM_DTYPE if method == "mcmc" else dtype
+            draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), kind, reverse=True)
         if method == "mcmc":
             pre = (draws, J_last) if streams is not None else (None, None)
             _mcmc_block(Jb, blk, zf, zx, filt.ancestors, logW, trans, all_valid, mcmc_steps, generator, *pre)
@@ -477,6 +478,12 @@ def ffbsi(
     if rolling:
         return stats.finish()
     return _trajectory_statistics(X, logW, Js, trans)
+
+
+#: The MCMC backward pass's uniforms are drawn in single precision: a double costs ~3x as much
+#: (6 vs 2 ns a number on one CPU thread, the pass's largest cost at the Table 1 size), and 24-bit
+#: uniforms pick among ``L < 2^24`` particles and set an acceptance probability to ``2^-24``.
+_UNIFORM_DTYPE = torch.float32
 
 
 def _mcmc_block(
@@ -527,13 +534,13 @@ def _mcmc_block(
     A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
     if draws is None:
         pick = torch.randint(L, (t, B, n), device=device, generator=generator)
-        u = torch.rand(t, B, steps, M, dtype=dtype, device=device, generator=generator)
+        u = torch.rand(t, B, steps, M, dtype=_UNIFORM_DTYPE, device=device, generator=generator)
     else:  # from the draws' layout (B, t, ...) in reversed time to time-major (t, B, ...)
         d = draws.view(B, t, 2, n)
         pick = d[:, :, 0].mul(L).long().clamp_(max=L - 1).transpose(0, 1).flip(0)
         u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).flip(0)
     props = torch.gather(A_next, 2, pick)  # (t, B, S M)
-    thr = torch.log(u).mul_(2.0)  # accept where 2 log u < d - d'
+    thr = torch.log(u).to(dtype).mul_(2.0)  # accept where 2 log u < d - d'
     kept = (A_next == torch.arange(L, device=device)).all(-1, keepdim=True)  # steps not resampled
     log_w2 = None
     if bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
