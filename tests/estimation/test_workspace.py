@@ -35,4 +35,5 @@ def test_a_recycled_e_step_equals_a_fresh_one_in_the_old_arrays(smoother):
     assert again.filter.particles.data_ptr() in pointers
     assert again.filter.log_weights.data_ptr() in pointers
     if smoother == "mcmc":  # the trajectory smoothers' statistics (FFBSm allocates its own)
-        assert again.smoother.log_weights.data_ptr() in pointers
+        assert again.smoother.weights.data_ptr() in pointers
+        assert again.smoother.next_mean.data_ptr() in pointers

@@ -157,9 +157,9 @@ def _arrays(est: EStepOutput | None) -> list:
     if est is None or est.windows is not None:
         return []
     f, s = est.filter, est.smoother
-    return [
+    return [  # (views, e.g. transition weights that are the weights' first steps, are skipped)
         f.particles, f.log_weights, f.ancestors,  # (f.noise_statistics: dropped, now e_log_lam)
-        s.log_weights, s.weights, s.next_mean, s.transition_weights, est.e_lam, est.e_log_lam,
+        s._log_weights, s.weights, s.next_mean, s.transition_weights, est.e_lam, est.e_log_lam,
     ]  # fmt: skip
 
 
@@ -211,7 +211,8 @@ def segmented_e_step(
     noise_scale = model.noise.per_sequence("Rv", windows.n_windows).unsqueeze(0)
     filt.scale = masked_scale(noise_scale, windows.owned_data.obs_mask)
     smooth.residual_scatter = windows.owned_scatter(filt.particles, smooth)
-    smooth.transition_weights.mul_(windows.owned_data.transition_mask.unsqueeze(-1))
+    # not in place: the trajectory smoothers' transition weights may be a view of their weights
+    smooth.transition_weights = smooth.transition_weights * windows.owned_data.transition_mask.unsqueeze(-1)
     return EStepOutput(filt, smooth, e_lam, e_log, windows)
 
 

@@ -350,12 +350,14 @@ def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -
     ``Rw`` is *added* to the smoothed covariance: with a single record the maximum-likelihood prior
     would otherwise collapse to a point over the iterations.
     """
-    X0, log_w0 = est.filter.particles[0], est.smoother.log_weights[0]  # (B, L, nx), (B, L)
+    sm = est.smoother
+    X0 = est.filter.particles[0]  # (B, L, nx)
+    w0 = torch.exp(sm.log_weights[0]) if sm.weights is None else sm.weights[0]  # (B, L)
     if est.windows is not None:  # windows of long records: those that start a record
-        X0, log_w0 = X0[est.windows.first], log_w0[est.windows.first]
+        X0, w0 = X0[est.windows.first], w0[est.windows.first]
     B = X0.shape[0]
     groups = _Groups(shared, B)
-    w0 = torch.exp(log_w0).unsqueeze(-1)  # (B, L, 1)
+    w0 = w0.unsqueeze(-1)  # (B, L, 1)
     count = groups.pool(torch.ones(B, dtype=X0.dtype, device=X0.device))
     mean = groups.pool((w0 * X0).sum(1)) / count[..., None]
     d = X0 - groups.per_sequence(mean.reshape(groups.n, -1)).unsqueeze(1)

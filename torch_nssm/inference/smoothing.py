@@ -75,19 +75,29 @@ class SmootherOutput:
         ``exp(log_weights)``, where the smoother has it exactly at no cost (the trajectory
         smoothers: counts over ``M``); the M-step reads it instead of taking ``exp`` of the
         log-weights twice per pass (``exp`` of the many ``-inf`` is ~3x slower than of a finite
-        value on a CPU).  ``None``: take ``exp(log_weights)``.
+        value on a CPU).  ``None``: take ``exp(log_weights)``.  Where a smoother gives only the
+        weights (``log_weights`` passed as ``None``), ``log_weights`` is their ``log``, taken when
+        first read: the EM loop reads only the weights, and a ``(T, B, L)`` array written per
+        E-step costs ~25 ms of memory traffic alone at the Table 1 size.
     """
 
-    log_weights: Tensor
+    _log_weights: Tensor | None
     next_mean: Tensor
     transition_weights: Tensor
     residual_scatter: Tensor
     weights: Tensor | None = None
 
+    @property
+    def log_weights(self) -> Tensor:
+        """Log marginal smoothing weights ``(T, B, L)``."""
+        if self._log_weights is None:
+            self._log_weights = torch.log(self.weights)
+        return self._log_weights
+
     def select(self, index) -> SmootherOutput:
         """The smoother output of the sequences ``index``."""
         return SmootherOutput(
-            self.log_weights[:, index],
+            None if self._log_weights is None else self._log_weights[:, index],
             self.next_mean[:, index],
             self.transition_weights[:, index],
             self.residual_scatter[index],
@@ -625,11 +635,10 @@ def _trajectory_statistics(X: Tensor, logW: Tensor, Js: Tensor, trans: Tensor) -
     block instead of per step; the blocks keep the temporaries in cache).  Each particle's count
     ``c`` (trajectories through it) and the sum ``q`` of its trajectories' next states give
     ``s = c / M``, ``xbar = q / c`` and ``sum_i s_i xbar_i xbar_i^T = sum_i q_i xbar_i^T / M``.
-    Measured on one CPU thread at B = 100, L = M = 100 (4x faster than taking ``log s`` and
-    masking with ``where``): ``log s`` is read from a table of ``log(c / M)`` (``log 0 = -inf``
-    costs ~8 ns an entry, a finite ``log`` ~2 ns, a table lookup ~1 ns), and the particles no
-    trajectory visits (``c = 0``, where ``xbar`` is the particle itself) are selected by
-    ``(1 - c)^+`` arithmetic instead of ``torch.where`` (~3 ns an entry with a random mask).
+    Only ``s`` is written (``log s`` is taken if the output's ``log_weights`` are read; with every
+    transition valid the transition weights are a view of it), and the particles no trajectory
+    visits (``c = 0``, where ``xbar`` is the particle itself) are selected by ``(1 - c)^+``
+    arithmetic instead of ``torch.where`` (~3 ns an entry with a random mask, one CPU thread).
     """
     stats = _TrajectoryStatistics(X, logW, trans, Js.shape[-1])
     for sl in time_blocks(X.shape[0] - 1, X.shape[1] * max(X.shape[2], Js.shape[-1])):
@@ -649,14 +658,12 @@ class _TrajectoryStatistics:
         dtype, device = X.dtype, X.device
         self.X, self.logW, self.trans, self.M = X, logW, trans, M
         self.all_valid = bool(trans.all())
-        self.log_ws = _workspace.empty((T, B, L), dtype, device)
         self.ws = _workspace.empty((T, B, L), dtype, device)
-        self.log_ws[-1] = logW[-1]
         torch.exp(logW[-1], out=self.ws[-1])
         self.next_mean = _workspace.empty((T - 1, B, L, nx), dtype, device)
-        self.trans_w = _workspace.empty((T - 1, B, L), dtype, device)
-        # log(c / M), -inf at 0
-        self.log_table = torch.log(torch.arange(M + 1, dtype=dtype, device=device) / M)
+        # with every transition valid the transition weights are the weights of the steps before
+        # the last: one array (a view) instead of two equal ones
+        self.trans_w = self.ws[:-1] if self.all_valid else _workspace.empty((T - 1, B, L), dtype, device)
         self.one = torch.ones((1, 1, 1), dtype=dtype, device=device)
         self.parts: list[tuple[int, Tensor]] = []
 
@@ -666,8 +673,7 @@ class _TrajectoryStatistics:
         X, logW, M = self.X, self.logW, self.M
         _, B, L, nx = X.shape
         dtype, device = X.dtype, X.device
-        log_ws, ws, next_mean, trans_w = self.log_ws, self.ws, self.next_mean, self.trans_w
-        log_table = self.log_table
+        ws, next_mean, trans_w = self.ws, self.next_mean, self.trans_w
         t = sl.stop - sl.start
         valid = self.trans[sl]  # (t, B)
         X_next, X_here = X[sl.start + 1 : sl.stop + 1], X[sl]
@@ -690,15 +696,13 @@ class _TrajectoryStatistics:
             torch.addcmul(q, X_here, unvisited.unsqueeze(-1), out=xbar)
             xbar.div_(unvisited.add_(c).unsqueeze(-1))
             step_scatter = (x_next.transpose(-1, -2) @ x_next - q.transpose(-1, -2) @ xbar) / M
-        counts = c.long()
         s = c.mul_(1.0 / M)
         if not masked:
             self.parts.append((sl.start, step_scatter.sum(0)))
-            torch.index_select(log_table, 0, counts.view(-1), out=log_ws[sl].view(-1))
-            ws[sl] = s
+            if not self.all_valid:  # else ``trans_w`` is a view of ``ws``: written already
+                ws[sl] = s
         else:
             self.parts.append((sl.start, torch.where(valid.view(t, B, 1, 1), step_scatter, 0.0).sum(0)))
-            log_ws[sl] = torch.where(valid.unsqueeze(-1), log_table[counts], logW[sl])
             ws[sl] = torch.where(valid.unsqueeze(-1), s, torch.exp(logW[sl]))
             trans_w[sl] = torch.where(valid.unsqueeze(-1), s, 0.0)
             next_mean[sl] = xbar
@@ -709,7 +713,7 @@ class _TrajectoryStatistics:
         scatter = torch.zeros(B, nx, nx, dtype=self.X.dtype, device=self.X.device)
         for _, part in sorted(self.parts, key=lambda p: p[0]):
             scatter += part
-        return SmootherOutput(self.log_ws, self.next_mean, self.trans_w, scatter, self.ws)
+        return SmootherOutput(None, self.next_mean, self.trans_w, scatter, self.ws)
 
 
 @torch.no_grad()
