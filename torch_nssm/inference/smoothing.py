@@ -568,31 +568,40 @@ def _mcmc_block(
     if log_w2 is not None:
         d0 -= torch.gather(log_w2, 2, A_next)
         w2_props = torch.gather(log_w2, 2, props.view(t, B, n)).view(t, B, steps, M) if steps > 1 else None
+    # every step's views made once per block (a list lookup is free; indexing a tensor with
+    # ``[i, :, s]`` costs a few microseconds of Python and view operations, at one record as much
+    # as an operation on its 1,000 trajectories)
+    by_move = lambda x: [v.unbind(0) for v in x.unbind(2)]  # noqa: E731  [s][i]: (B, M, ...)
+    THR, PROPS, CAND = by_move(thr), by_move(props), by_move(cand)
+    W2 = by_move(w2_props) if log_w2 is not None and steps > 1 else None
+    A, D0, JS = A_next.unbind(0), d0.unbind(0), Js.unbind(0)
+    ZX = zx1.unbind(0) if nx == 1 else zx.unbind(0)
+    last = steps - 1
     for k in range(blk.stop - 1, blk.start - 1, -1):
         i = k - blk.start
-        J_next = Js[i + 1]
-        J = torch.gather(A_next[i], 1, J_next)  # the genealogical parents
-        d = torch.gather(d0[i], 1, J_next)  # their squared distances (less 2 log W where not resampled)
+        J_next = JS[i + 1]
+        J = torch.gather(A[i], 1, J_next)  # the genealogical parents
+        d = torch.gather(D0[i], 1, J_next)  # their squared distances (less 2 log W where not resampled)
         if nx == 1:
-            x_next = torch.gather(zx1[i], 1, J_next)  # (B, M)
+            x_next = torch.gather(ZX[i], 1, J_next)  # (B, M)
         else:
-            x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+            x_next = torch.gather(ZX[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
         for s in range(steps):
             if nx == 1:
-                d_prop = x_next - cand[i, :, s]
+                d_prop = x_next - CAND[s][i]
                 d_prop = d_prop * d_prop
             else:
-                d_prop = squared_norm(x_next - cand[i, :, s])
-            accept = thr[i, :, s] < d - d_prop
-            J = torch.where(accept, props[i, :, s], J)
-            if s + 1 < steps:
-                d = torch.where(accept, d_prop if log_w2 is None else d_prop - w2_props[i, :, s], d)
+                d_prop = squared_norm(x_next - CAND[s][i])
+            accept = THR[s][i] < d - d_prop
+            out = JS[i] if s == last and all_valid[k] else None  # the last move writes the result
+            J = torch.where(accept, PROPS[s][i], J, out=out)
+            if s < last:
+                d = torch.where(accept, d_prop if W2 is None else d_prop - W2[s][i], d)
         if not all_valid[k]:
             # Rows past a sequence's end restart from the filter (their transitions are masked out):
             # an i.i.d. draw from the filter weights, or each sequence's draw at its last step (streams).
             restart = _draw(logW[k], M, generator) if draws is None else J_last
-            J = torch.where(trans[k].unsqueeze(-1), J, restart)
-        Js[i] = J
+            torch.where(trans[k].unsqueeze(-1), J, restart, out=JS[i])
 
 
 def _reject(
