@@ -287,7 +287,9 @@ def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice]
     ``weights`` where it has them (a view: not to be modified in place), else ``exp`` of its
     log-weights."""
     observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
-    ws, log_ws = est.smoother.weights, est.smoother.log_weights
+    sm = est.smoother
+    ws = sm.weights
+    log_ws = sm.log_weights if ws is None else None  # (read only without weights: it may be computed)
     if bool(observed.all()):
         return (lambda sl: ws[sl]) if ws is not None else (lambda sl: torch.exp(log_ws[sl]))
     if ws is not None:
