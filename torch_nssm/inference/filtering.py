@@ -17,6 +17,7 @@ from .. import _workspace
 from .._ops import small_matmul
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MaskedScale, masked_scale
+from ..core.noise.base import step_views
 from .random import Randomness, SequenceStreams
 from .resampling import SystematicResampler, get_resampler, systematic
 
@@ -215,7 +216,7 @@ def particle_filter(
     if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
         c1 = C[..., 0]  # (T, B, 1)
         cy = (c1 * y0).unsqueeze(-1).unbind(0)  # (B, 1, 1) each
-        c1 = c1.unsqueeze(-1).unbind(0)
+        c1 = step_views(c1.unsqueeze(-1))
     # Per-step terms: max logit ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the
     # log-likelihood, the normalisation of the stored log-weights and the ESS follow after the loop.
     m_all = torch.empty(T, B, 1, dtype=dtype, device=device)

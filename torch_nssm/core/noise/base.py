@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
-__all__ = ["MeasurementNoise", "NoiseEvaluator", "MaskedScale", "masked_scale", "symmetric_pd"]
+__all__ = ["MeasurementNoise", "NoiseEvaluator", "MaskedScale", "masked_scale", "step_views", "symmetric_pd"]
 
 
 @dataclass
@@ -78,6 +79,16 @@ def masked_scale(R: Tensor, mask: Tensor) -> MaskedScale:
     chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     return MaskedScale(chol_inv=chol_inv, logdet=logdet, n_obs=m.sum(-1), mask=mask)
+
+
+def step_views(values: Tensor) -> Sequence[Tensor]:
+    """The views ``values[k]`` of every step ``k`` of a time-major ``values`` ``(T, ...)``, for a loop
+    over the steps (indexing a list is free, a tensor select is an operation): one view repeated
+    when every step holds the same values (e.g. a whitener or a Student-t coefficient of a record
+    without missing outputs), else ``values.unbind(0)``."""
+    if values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values)):
+        return [values[0]] * values.shape[0]
+    return values.unbind(0)
 
 
 def symmetric_pd(S: Tensor, jitter: float = 0.0) -> Tensor:

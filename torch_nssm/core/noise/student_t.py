@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, masked_scale, standard_gamma
+from .base import MaskedScale, masked_scale, standard_gamma, step_views
 from .joint import JointScaleNoise, SquaredNormEvaluator
 
 __all__ = [
@@ -123,8 +123,8 @@ class _StudentTEvaluator(SquaredNormEvaluator):
     def __init__(self, dof: Tensor, scale: MaskedScale, n_particles: int):
         const = student_t_log_prob(torch.zeros_like(scale.logdet), scale.logdet, scale.n_obs, dof)
         super().__init__(const, n_particles)
-        self._neg_coef = (-0.5 * (dof + scale.n_obs)).unsqueeze(-1).unbind(0)  # (B, 1) per step
-        self._inv_nu = (1.0 / dof).expand_as(const).unsqueeze(-1).unbind(0)
+        self._neg_coef = step_views((-0.5 * (dof + scale.n_obs)).unsqueeze(-1))  # (B, 1) per step
+        self._inv_nu = step_views((1.0 / dof).expand_as(const).unsqueeze(-1))
 
     def step(self, k: int, z: Tensor) -> Tensor:
         delta2 = self.squared_norm(k, z)
