@@ -75,8 +75,15 @@ def masked_scale(R: Tensor, mask: Tensor) -> MaskedScale:
     m = mask.to(R.dtype)
     eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     Rm = R * m.unsqueeze(-1) * m.unsqueeze(-2) + eye * (1.0 - m).unsqueeze(-1)
-    chol = torch.linalg.cholesky(Rm)
-    chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    if R.shape[-1] == 1 and bool((Rm > 0).all()):  # one output: the 1 x 1 Cholesky factor is the
+        # square root and its inverse the reciprocal, the same values as LAPACK's (4x cheaper at
+        # T = 1000, B = 100: 2 vs 8.5 ms per filter pass); a scale that is not positive goes
+        # through cholesky below, which raises
+        chol = torch.sqrt(Rm)
+        chol_inv = torch.reciprocal(chol)
+    else:
+        chol = torch.linalg.cholesky(Rm)
+        chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     return MaskedScale(chol_inv=chol_inv, logdet=logdet, n_obs=m.sum(-1), mask=mask)
 
