@@ -235,6 +235,7 @@ def particle_filter(
     U_f, U_g = _step_inputs(f, data.u, L), _step_inputs(g, data.u, L)
     log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
     log_w = log_uniform  # normalised log-weights (needed only without ``always``)
+    e_buffer = torch.empty(B, L, dtype=dtype, device=device)  # read by the next step's resampling only
     e = log_uniform  # exp(logit - m) of the previous step (set at k = 0 before its first use)
     for k in range(T):
         x = X[k]
@@ -266,7 +267,7 @@ def particle_filter(
             logits = logits.add_(log_w)
         m = torch.amax(logits, dim=-1, keepdim=True, out=M[k])
         z = torch.sub(logits, m, out=LW[k])
-        e = torch.exp(z)
+        e = torch.exp(z, out=e_buffer)
         s = torch.sum(e, dim=-1, keepdim=True, out=S[k])
         torch.linalg.vector_norm(e, dim=-1, keepdim=True, out=NORM[k])
         if not always:

@@ -125,7 +125,8 @@ class NoiseEvaluator:
     def step(self, k: int, z: Tensor) -> Tensor:
         """Log-density minus ``const[k]`` of the whitened residuals ``z`` ``(B, L, p)`` of step
         ``k`` (zero at missing components), shape ``(B, L)``; records ``statistics[k]``.  The
-        result may be modified in place by the caller."""
+        result may be modified in place by the caller, and may be an array of the evaluator's own
+        that the next call overwrites."""
         raise NotImplementedError
 
 

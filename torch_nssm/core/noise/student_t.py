@@ -128,7 +128,7 @@ class _StudentTEvaluator(SquaredNormEvaluator):
 
     def step(self, k: int, z: Tensor) -> Tensor:
         delta2 = self.squared_norm(k, z)
-        return torch.log1p_(delta2 * self._inv_nu[k]).mul_(self._neg_coef[k])
+        return torch.log1p_(torch.mul(delta2, self._inv_nu[k], out=self._logits)).mul_(self._neg_coef[k])
 
 
 @dataclass(frozen=True)
