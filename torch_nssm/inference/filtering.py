@@ -91,11 +91,10 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
     noise_dtype = torch.float32 if out.dtype == torch.float64 else out.dtype
     if isinstance(generator, SequenceStreams):
         limits = [int(n) - 1 for n in lengths]
-        if nx == 1:  # each sequence's draws through one small buffer, widened into ``out``: no
+        if nx == 1:  # each sequence's draws through one small buffer, widened and scaled into ``out``: no
             # (T - 1, B, L) single-precision array (its first-touch page faults, ~10,000 per E-step
             # at the Table 1 size, cost more than the copies)
-            generator.normal_steps_into(out, limits, noise_dtype)
-            out.mul_(Cw.view(B, 1, 1))
+            generator.normal_steps_into(out, limits, noise_dtype, scale=Cw.reshape(B))
             return
         noise = generator.steps(0, T1, limits, tuple(out.shape[2:]), noise_dtype, normal=True, fill=0.0)
         noise = noise.transpose(0, 1)
