@@ -100,6 +100,16 @@ class LinearInParameters(nn.Module):
         inputs at each step (e.g. the input term of every step, computed at once: the particle
         filter then passes ``step_inputs(u)[k]`` at step ``k``).  The values must equal
         ``predict(x, u, theta)``.
+
+        Parameters
+        ----------
+        theta : Tensor, shape (..., P)
+            The parameters, broadcast against the particles' leading dimensions.
+
+        Returns
+        -------
+        callable
+            ``(x, u) -> out``, shape ``(..., d)``.
         """
         return lambda x, u: self.predict(x, u, theta)
 

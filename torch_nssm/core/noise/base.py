@@ -89,10 +89,20 @@ def masked_scale(R: Tensor, mask: Tensor) -> MaskedScale:
 
 
 def step_views(values: Tensor) -> Sequence[Tensor]:
-    """The views ``values[k]`` of every step ``k`` of a time-major ``values`` ``(T, ...)``, for a loop
-    over the steps (indexing a list is free, a tensor select is an operation): one view repeated
-    when every step holds the same values (e.g. a whitener or a Student-t coefficient of a record
-    without missing outputs), else ``values.unbind(0)``."""
+    """The views ``values[k]`` of every step ``k`` of a time-major ``values``, for a loop over the
+    steps (indexing a list is free, a tensor select is an operation).
+
+    Parameters
+    ----------
+    values : Tensor, shape (T, ...)
+
+    Returns
+    -------
+    list or tuple of Tensor
+        One view repeated ``T`` times (a list) when every step holds the same values (e.g. a
+        whitener or a Student-t coefficient of records without missing outputs), else
+        ``values.unbind(0)``.
+    """
     if values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values)):
         return [values[0]] * values.shape[0]
     return values.unbind(0)
