@@ -270,13 +270,39 @@ def test_parameterless_observation_module():
     torch.testing.assert_close(g(x, torch.zeros(2, 3, 1, dtype=DTYPE)), x[..., 2:])
 
 
+def _assert_frozen_equals_forward(module, x, u):
+    """``module.frozen()`` at every step of inputs ``u`` ``(T, B, nu)``, through its ``step_inputs``
+    where it has them (what the particle filter passes), equals ``forward`` bit for bit."""
+    frozen = module.frozen()
+    steps = frozen.step_inputs(u) if hasattr(frozen, "step_inputs") else None
+    for k in range(u.shape[0]):
+        expected = module(x, u[k].unsqueeze(-2).expand(*x.shape[:-1], u.shape[-1]))
+        got = frozen(x, steps[k] if steps is not None else u[k].unsqueeze(-2).expand_as(expected))
+        assert torch.equal(got, expected)
+
+
+def test_frozen_paper_and_stacked_modules_equal_forward():
+    """The paper's f and g, alone and stacked (one parameter vector per sequence), evaluate the
+    same values through their per-pass evaluators as through ``forward``."""
+    from torch_nssm.estimation.independent import StackedModule
+
+    x = torch.randn(3, 7, 1, dtype=torch.float64)
+    u = torch.randn(4, 3, 1, dtype=torch.float64)
+    fs = [PaperTransition(0.9 - 0.1 * i, 0.7 + 0.2 * i) for i in range(3)]
+    gs = [PaperObservation(1.0 + 0.3 * i) for i in range(3)]
+    for module in (fs[1], gs[2], StackedModule(fs), StackedModule(gs)):
+        frozen = module.frozen()
+        assert frozen is not module and hasattr(frozen, "step_inputs")
+        _assert_frozen_equals_forward(module, x, u)
+
+
 def test_frozen_evaluator_equals_forward_and_respects_overrides():
     """``frozen()`` (the filter's per-pass evaluator) computes ``forward`` with the parameters as
     they were when it was made; a subclass with its own ``forward`` or a hook gets the module."""
-    f = PaperTransition(0.9, 1.0)
-    x = torch.randn(3, 7, 1, dtype=torch.float64)
-    u = torch.randn(3, 7, 1, dtype=torch.float64)
-    torch.testing.assert_close(f.frozen()(x, u), f(x, u), rtol=0, atol=0)
+    f = PaperTransition(0.9, 0.7)
+    x = torch.randn(3, 7, 1, dtype=torch.float64)  # (B, L, nx) particles
+    u = torch.randn(5, 3, 1, dtype=torch.float64)  # (T, B, nu) inputs of a pass
+    _assert_frozen_equals_forward(f, x, u)
 
     class Scaled(PaperTransition):
         def forward(self, x, u):

@@ -131,6 +131,24 @@ def test_masked_scale_fields():
     np.testing.assert_allclose(Pm[np.ix_(obs, obs)], np.linalg.inv(R[np.ix_(obs, obs)]), rtol=1e-10)
 
 
+def test_masked_scale_one_output_equals_cholesky():
+    """One output: the square-root path gives LAPACK's Cholesky factor, inverse and log-determinant
+    bit for bit (with missing samples and a batch of scales); a scale that is not positive still
+    raises as ``torch.linalg.cholesky`` does."""
+    gen = torch.Generator().manual_seed(4)
+    R = 10.0 ** (4.0 * torch.rand(1, 7, 1, 1, dtype=DTYPE, generator=gen) - 3.0)
+    mask = torch.rand(50, 7, 1, generator=gen) > 0.2
+    sc = masked_scale(R, mask)
+    m = mask.to(DTYPE)
+    Rm = R * m.unsqueeze(-1) * m.unsqueeze(-2) + (1.0 - m).unsqueeze(-1)
+    chol = torch.linalg.cholesky(Rm)
+    eye = torch.ones(1, 1, dtype=DTYPE).expand_as(chol)
+    assert torch.equal(sc.chol_inv, torch.linalg.solve_triangular(chol, eye, upper=False))
+    assert torch.equal(sc.logdet, 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1))
+    with pytest.raises(torch.linalg.LinAlgError):
+        masked_scale(-R, mask)
+
+
 # --------------------------------------------------------------------------- latent scale moments
 
 

@@ -202,3 +202,22 @@ def test_systematic_search_and_scatter_paths(monkeypatch, search_work, n):
     a = resampling.systematic_from_cumsum(cumw, u, n)
     monkeypatch.setattr(resampling, "SEARCH_WORK", 0.0 if search_work else math.inf)  # the other path
     assert torch.equal(a, resampling.systematic_from_cumsum(cumw, u, n))
+
+
+@pytest.mark.parametrize("B, L", [(1, 8), (3, 50), (1, 1000), (20, 100)])
+def test_systematic_resampler_equals_systematic_from_cumsum(B, L):
+    """The filter's reusable resampler returns exactly ``systematic_from_cumsum``'s indices, on both
+    paths (search for few rows, scatter otherwise), call after call on its reused arrays."""
+    from torch_nssm.inference import resampling
+
+    rs = resampling.SystematicResampler(B, L, DTYPE)
+    assert rs.search == (B * L * math.log2(L) < resampling.SEARCH_WORK)
+    gen = torch.Generator().manual_seed(3)
+    out = torch.empty(B, L, dtype=torch.long)
+    for i in range(4):
+        w = torch.exp(3.0 * torch.randn(B, L, dtype=DTYPE, generator=gen))
+        w[:, i % L] = 0.0
+        u = torch.rand(B, 1, dtype=DTYPE, generator=gen)
+        expected = resampling.systematic_from_cumsum(torch.cumsum(w, -1), u)
+        assert torch.equal(rs(w, u), expected)
+        assert torch.equal(rs(w, u, out=out), expected) and torch.equal(out, expected)

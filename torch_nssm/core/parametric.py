@@ -85,10 +85,33 @@ class LinearInParameters(nn.Module):
         if type(self).forward is not LinearInParameters.forward or hooks:
             return self
         if type(self).predict is not LinearInParameters.predict:  # the subclass's own evaluation
-            theta = self.theta()
-            return lambda x, u: self.predict(x, u, theta)
+            return self.frozen_predict(self.theta())
         theta_column = self.theta().unsqueeze(-1)
         return lambda x, u: self._linear(x, u, theta_column)
+
+    def frozen_predict(self, theta: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
+        """:meth:`predict` with ``theta`` fixed for one filter pass over particle arrays ``(B, L, nx)``
+        (``theta`` broadcast against them, e.g. ``(P,)`` or ``(B, 1, P)``): :meth:`frozen`'s evaluator,
+        and a stacked module's.
+
+        A subclass may return a function that takes the views of ``theta`` it needs once, not at
+        every step; that function may also have a ``step_inputs(u)`` attribute, which maps the
+        pass's time-major inputs ``u`` ``(T, B, nu)`` to what it takes in place of the particles'
+        inputs at each step (e.g. the input term of every step, computed at once: the particle
+        filter then passes ``step_inputs(u)[k]`` at step ``k``).  The values must equal
+        ``predict(x, u, theta)``.
+
+        Parameters
+        ----------
+        theta : Tensor, shape (..., P)
+            The parameters, broadcast against the particles' leading dimensions.
+
+        Returns
+        -------
+        callable
+            ``(x, u) -> out``, shape ``(..., d)``.
+        """
+        return lambda x, u: self.predict(x, u, theta)
 
     @torch.no_grad()
     def solve_weighted_least_squares(

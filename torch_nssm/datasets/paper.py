@@ -304,6 +304,26 @@ class PaperTransition(LinearInParameters):
         """``a x + b u`` in two passes (:meth:`LinearInParameters.predict`)."""
         return torch.addcmul(u * theta[..., 1:2], x, theta[..., 0:1])
 
+    def frozen_predict(self, theta: Tensor):
+        """``a x + b u`` for one filter pass: ``a`` and ``b`` viewed once, and the input term ``b u``
+        of every step made at once (``step_inputs``: ``(B, 1, 1)`` per step, broadcast over the
+        particles), so that a step costs one ``addcmul`` (the same values as :meth:`predict`).
+
+        ``a`` is expanded to the particles' shape once (at the first call, again if the shape
+        changes): with two broadcast operands ``addcmul`` runs its scalar loop, with one its
+        vectorised loop (2.2x faster at 10^4 particles, the same fused multiply-add).
+        """
+        a, b = theta[..., 0:1], theta[..., 1:2]
+        full = [a]
+
+        def f(x: Tensor, bu: Tensor) -> Tensor:
+            if full[0].shape != x.shape:
+                full[0] = a.expand_as(x).contiguous()
+            return torch.addcmul(bu, x, full[0])
+
+        f.step_inputs = lambda u: (u.unsqueeze(-2) * b).unbind(0)
+        return f
+
     def extra_repr(self) -> str:
         return f"a={self.a.item():.6g}, b={self.b.item():.6g}"
 
@@ -340,6 +360,17 @@ class PaperObservation(LinearInParameters):
     def predict(self, x: Tensor, u: Tensor, theta: Tensor) -> Tensor:
         """``c cos(x)`` in two passes (:meth:`LinearInParameters.predict`)."""
         return theta[..., 0:1] * torch.cos(x)
+
+    def frozen_predict(self, theta: Tensor):
+        """``c cos(x)`` for one filter pass: ``c`` viewed once, no inputs (``step_inputs``: ``None``
+        at every step)."""
+        c = theta[..., 0:1]
+
+        def g(x: Tensor, u) -> Tensor:
+            return c * torch.cos(x)
+
+        g.step_inputs = lambda u: [None] * u.shape[0]
+        return g
 
     def extra_repr(self) -> str:
         return f"c={self.c.item():.6g}"

@@ -56,6 +56,15 @@ class StackedModule(nn.Module):
 
         return vmap(call)(self._params, self._buffers_stacked, x, u)
 
+    def frozen(self):
+        """The particle filter's evaluator of one pass over particle arrays ``(B, L, nx)``: for
+        modules linear in their parameters, the template's
+        :meth:`~torch_nssm.LinearInParameters.frozen_predict` at the stacked parameters (their views
+        taken once, not at every step); else the module."""
+        if self._theta is None:
+            return self
+        return self._template[0].frozen_predict(self._theta.unsqueeze(1))  # (B, 1, P)
+
 
 def stack_models(models: list[StateSpaceModel]) -> StateSpaceModel:
     """One model with a leading batch dimension from ``B`` models of the same architecture."""

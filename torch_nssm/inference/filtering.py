@@ -17,8 +17,9 @@ from .. import _workspace
 from .._ops import small_matmul
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MaskedScale, masked_scale
+from ..core.noise.base import step_views
 from .random import Randomness, SequenceStreams
-from .resampling import get_resampler, systematic, systematic_from_cumsum, systematic_grid
+from .resampling import SystematicResampler, get_resampler, systematic
 
 __all__ = ["FilterOutput", "particle_filter", "sample_initial_state", "NumericalError"]
 
@@ -90,11 +91,10 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
     noise_dtype = torch.float32 if out.dtype == torch.float64 else out.dtype
     if isinstance(generator, SequenceStreams):
         limits = [int(n) - 1 for n in lengths]
-        if nx == 1:  # each sequence's draws through one small buffer, widened into ``out``: no
+        if nx == 1:  # each sequence's draws through one small buffer, widened and scaled into ``out``: no
             # (T - 1, B, L) single-precision array (its first-touch page faults, ~10,000 per E-step
             # at the Table 1 size, cost more than the copies)
-            generator.normal_steps_into(out, limits, noise_dtype)
-            out.mul_(Cw.view(B, 1, 1))
+            generator.normal_steps_into(out, limits, noise_dtype, scale=Cw.reshape(B))
             return
         noise = generator.steps(0, T1, limits, tuple(out.shape[2:]), noise_dtype, normal=True, fill=0.0)
         noise = noise.transpose(0, 1)
@@ -112,6 +112,17 @@ def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
     :meth:`LinearInParameters.frozen`, parameters gathered once), else the module."""
     frozen = getattr(module, "frozen", None)
     return frozen() if callable(frozen) else module
+
+
+def _step_inputs(module: Callable, u: Tensor, L: int):
+    """What ``module`` (a :func:`_frozen` evaluator) takes as its inputs at each step, from the time-major
+    inputs ``u`` ``(T, B, nu)``: its own ``step_inputs(u)`` where it has one (e.g. the input term
+    of all steps computed at once), else the inputs expanded over the ``L`` particles ``(B, L, nu)``,
+    as :meth:`StateSpaceModel.transition` passes them."""
+    own = getattr(module, "step_inputs", None)
+    if own is not None:
+        return own(u)
+    return u.unsqueeze(-2).expand(*u.shape[:2], L, u.shape[-1]).unbind(0)
 
 
 def sample_initial_state(model: StateSpaceModel, B: int, L: int, generator: Randomness = None) -> Tensor:
@@ -198,14 +209,16 @@ def particle_filter(
         else:
             shape = (max(T - 1, 0), B, 1)
             uniforms = torch.rand(shape, dtype=dtype, device=device, generator=generator).unbind(0)
-        grid = systematic_grid(B, L, dtype, device)
-        ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
+        resample_systematic = SystematicResampler(B, L, dtype, device)
     y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
     p = y0.shape[-1]
     if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
         c1 = C[..., 0]  # (T, B, 1)
         cy = (c1 * y0).unsqueeze(-1).unbind(0)  # (B, 1, 1) each
-        c1 = c1.unsqueeze(-1).unbind(0)
+        c1 = step_views(c1.unsqueeze(-1))
+        if c1[0] is c1[-1]:  # the same at every step: expanded to the particles once (addcmul with
+            # one broadcast operand, not two, runs vectorised: 2.2x faster at 10^4 particles)
+            c1 = [c1[0].expand(B, L, 1).contiguous()] * T
     # Per-step terms: max logit ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the
     # log-likelihood, the normalisation of the stored log-weights and the ESS follow after the loop.
     m_all = torch.empty(T, B, 1, dtype=dtype, device=device)
@@ -213,20 +226,24 @@ def particle_filter(
     norm_all = torch.empty(T, B, 1, dtype=dtype, device=device)
     # Views of every step, made once (indexing a list is free, a tensor select is an operation).
     X, LW, A = particles.unbind(0), log_weights.unbind(0), ancestors.unbind(0)
-    A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
+    if nx == 1:  # the parents gathered from (B, L) rows into one reused array: 2.5-3x cheaper than
+        # gathering (B, L, 1) rows with an expanded index
+        parents = torch.empty(B, L, 1, dtype=dtype, device=device)
+        parents_2d, X_2d = parents[..., 0], particles[..., 0].unbind(0)
+    else:
+        A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
     M, S, NORM = m_all.unbind(0), s_all.unbind(0), norm_all.unbind(0)
-    U = data.u.unsqueeze(-2).expand(T, B, L, data.u.shape[-1]).unbind(0)  # model.transition's expand
     f, g = _frozen(model.f), _frozen(model.g)
+    U_f, U_g = _step_inputs(f, data.u, L), _step_inputs(g, data.u, L)
     log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
     log_w = log_uniform  # normalised log-weights (needed only without ``always``)
+    e_buffer = torch.empty(B, L, dtype=dtype, device=device)  # read by the next step's resampling only
     e = log_uniform  # exp(logit - m) of the previous step (set at k = 0 before its first use)
     for k in range(T):
         x = X[k]
         if k > 0:
             if fast_systematic:  # straight into ``ancestors`` when resampling at every step
-                cumw = torch.cumsum(e, dim=-1)
-                out = A[k] if always else None
-                anc = systematic_from_cumsum(cumw, uniforms[k - 1], out=out, grid=grid, ones=ones)
+                anc = resample_systematic(e, uniforms[k - 1], out=A[k] if always else None)
             else:  # the schemes normalise (softmax): the stored logit - m will do
                 gen = generator if streams is None else streams.at_step([k < n for n in lengths])
                 anc = resample(LW[k - 1] if always else log_w, generator=gen)
@@ -237,8 +254,12 @@ def particle_filter(
                 do = ess_prev < ess_threshold * L  # (B, 1)
                 torch.where(do, anc, arange, out=A[k])
                 log_w = torch.where(do, log_uniform, log_w)
-            x.add_(f(torch.gather(X[k - 1], 1, A_gather[k]), U[k - 1]))
-        gx = g(x, U[k])
+            if nx == 1:
+                torch.gather(X_2d[k - 1], 1, A[k], out=parents_2d)
+                x.add_(f(parents, U_f[k - 1]))
+            else:
+                x.add_(f(torch.gather(X[k - 1], 1, A_gather[k]), U_f[k - 1]))
+        gx = g(x, U_g[k])
         if p == 1:
             z = torch.addcmul(cy[k], gx, c1[k], value=-1.0)
         else:
@@ -248,7 +269,7 @@ def particle_filter(
             logits = logits.add_(log_w)
         m = torch.amax(logits, dim=-1, keepdim=True, out=M[k])
         z = torch.sub(logits, m, out=LW[k])
-        e = torch.exp(z)
+        e = torch.exp(z, out=e_buffer)
         s = torch.sum(e, dim=-1, keepdim=True, out=S[k])
         torch.linalg.vector_norm(e, dim=-1, keepdim=True, out=NORM[k])
         if not always:

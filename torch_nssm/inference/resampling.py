@@ -25,6 +25,7 @@ __all__ = [
     "systematic",
     "systematic_from_cumsum",
     "systematic_grid",
+    "SystematicResampler",
     "stratified",
     "residual",
     "get_resampler",
@@ -168,6 +169,56 @@ def systematic_from_cumsum(
     marks = torch.zeros(B, n + 1, dtype=torch.long, device=cumw.device)
     marks.scatter_add_(1, below, ones)
     return torch.cumsum(marks[:, :n], dim=1, out=out)
+
+
+class SystematicResampler:
+    """:func:`systematic_from_cumsum` of ``B`` rows of ``L`` weights, ``n = L`` draws, called many times
+    (the particle filter's every step) with its work arrays and their views made once.
+
+    Each call takes the weights themselves (it writes their cumulative sums into its own array) and
+    returns exactly what ``systematic_from_cumsum(torch.cumsum(weights, -1), u, out=out)`` returns,
+    with about six operations fewer per call (three slices, three allocations; measured at one
+    sequence, where each costs ~0.5-1 us of dispatch).  The returned indices are ``out`` or, without
+    it, an array of the resampler's own that the next call overwrites.
+
+    Parameters
+    ----------
+    B, L : int
+        Rows and weights per row.
+    dtype : torch.dtype
+        Dtype of the weights.
+    device : torch.device or str, optional
+    """
+
+    def __init__(self, B: int, L: int, dtype: torch.dtype, device: torch.device | str | None = None):
+        self.L = L
+        self.cumw = torch.empty(B, L, dtype=dtype, device=device)
+        self._total = self.cumw[:, -1:]
+        self.search = B * L * math.log2(max(L, 2)) < SEARCH_WORK
+        self._own = torch.empty(B, L, dtype=torch.long, device=device)
+        if self.search:
+            self._grid = systematic_grid(B, L, dtype, device)
+        else:
+            self._head = self.cumw[:, :-1]
+            self._ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
+            self._below = torch.empty(B, L - 1, dtype=torch.long, device=device)
+            self._marks = torch.empty(B, L + 1, dtype=torch.long, device=device)
+            self._counted = self._marks[:, :L]
+
+    def __call__(self, weights: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
+        """Ancestor indices ``(B, L)`` for non-negative ``weights`` ``(B, L)`` and one uniform per row
+        ``u`` ``(B, 1)`` (into ``out`` if given)."""
+        L, out = self.L, self._own if out is None else out
+        torch.cumsum(weights, dim=-1, out=self.cumw)
+        inv_total = torch.reciprocal(self._total)
+        if self.search:
+            positions = torch.addcmul(u, self.cumw, inv_total, value=L)
+            idx = torch.searchsorted(positions, self._grid, right=True, out=out)
+            return idx.clamp_(max=L - 1)
+        below = self._below.copy_(torch.addcmul(u, self._head, inv_total, value=L)).clamp_(0, L)  # as .long()
+        self._marks.zero_()
+        self._marks.scatter_add_(1, below, self._ones)
+        return torch.cumsum(self._counted, dim=1, out=out)
 
 
 def stratified(log_weights: Tensor, n: int | None = None, generator: _random.Randomness = None) -> Tensor:

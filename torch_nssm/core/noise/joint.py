@@ -25,6 +25,7 @@ class SquaredNormEvaluator(NoiseEvaluator):
         # views of every step, made once (indexing a list is free, a tensor select is an operation)
         self._delta2 = self.statistics.unbind(0)
         self._delta2_col = self.statistics.unsqueeze(-1).unbind(0)
+        self._logits = torch.empty(B, n_particles, dtype=const.dtype, device=const.device)  # step's result
 
     def squared_norm(self, k: int, z: Tensor) -> Tensor:
         if z.shape[-1] == 1:

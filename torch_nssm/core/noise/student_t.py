@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, masked_scale, standard_gamma
+from .base import MaskedScale, masked_scale, standard_gamma, step_views
 from .joint import JointScaleNoise, SquaredNormEvaluator
 
 __all__ = [
@@ -116,19 +116,29 @@ def check_dof_init(dof: float) -> None:
         )
 
 
+def _same_at_every_step(values: Tensor) -> bool:
+    return values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values))
+
+
 class _StudentTEvaluator(SquaredNormEvaluator):
     """The filter's fused log-density: ``-(nu + p)/2 log1p(delta2 / nu)`` with the per-``(T, B)``
     coefficients split into per-step views once per pass."""
 
     def __init__(self, dof: Tensor, scale: MaskedScale, n_particles: int):
-        const = student_t_log_prob(torch.zeros_like(scale.logdet), scale.logdet, scale.n_obs, dof)
+        logdet, n_obs = scale.logdet, scale.n_obs
+        if _same_at_every_step(logdet) and _same_at_every_step(n_obs):  # nothing missing: one step's
+            # constants, expanded (the lgamma of every (T, B) entry cost ~3 ms at T = 1000, B = 100)
+            const = student_t_log_prob(torch.zeros_like(logdet[:1]), logdet[:1], n_obs[:1], dof)
+            const = const.expand_as(logdet)
+        else:
+            const = student_t_log_prob(torch.zeros_like(logdet), logdet, n_obs, dof)
         super().__init__(const, n_particles)
-        self._neg_coef = (-0.5 * (dof + scale.n_obs)).unsqueeze(-1).unbind(0)  # (B, 1) per step
-        self._inv_nu = (1.0 / dof).expand_as(const).unsqueeze(-1).unbind(0)
+        self._neg_coef = step_views((-0.5 * (dof + scale.n_obs)).unsqueeze(-1))  # (B, 1) per step
+        self._inv_nu = step_views((1.0 / dof).expand_as(const).unsqueeze(-1))
 
     def step(self, k: int, z: Tensor) -> Tensor:
         delta2 = self.squared_norm(k, z)
-        return torch.log1p_(delta2 * self._inv_nu[k]).mul_(self._neg_coef[k])
+        return torch.log1p_(torch.mul(delta2, self._inv_nu[k], out=self._logits)).mul_(self._neg_coef[k])
 
 
 @dataclass(frozen=True)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, standard_gamma
+from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, standard_gamma, step_views
 from .student_t import check_dof_init, latent_scale_expectations, solve_dof
 
 __all__ = ["StudentTPerOutputNoise"]
@@ -34,8 +34,8 @@ class _PerOutputEvaluator(NoiseEvaluator):
         T, B, p = mask.shape
         self.statistics = torch.empty(T, B, n_particles, p, dtype=mask.dtype, device=mask.device)
         self._z2 = self.statistics.unbind(0)
-        self._neg_coef = (-0.5 * (dof + 1.0)).expand(T, B, p).unsqueeze(-2).unbind(0)  # (B, 1, p)
-        self._inv_nu = (1.0 / dof).expand(T, B, p).unsqueeze(-2).unbind(0)
+        self._neg_coef = step_views((-0.5 * (dof + 1.0)).expand(T, B, p).unsqueeze(-2))  # (B, 1, p)
+        self._inv_nu = step_views((1.0 / dof).expand(T, B, p).unsqueeze(-2))
 
     def step(self, k: int, z: Tensor) -> Tensor:
         z2 = torch.mul(z, z, out=self._z2[k])
