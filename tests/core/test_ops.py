@@ -75,8 +75,9 @@ def test_mcmc_backward_moves_have_the_exact_law(resampled, streams, steps):
     j0 = 3  # every trajectory passes through particle 3 at k + 1
     Js = torch.full((2, 1, M), j0, dtype=torch.long)
     draws = torch.rand(1, 1, 2 * steps * M, dtype=torch.float64, generator=g) if streams else None
-    _mcmc_block(Js, slice(0, 1), zf, zx, ancestors, log_w, torch.ones(1, 1, dtype=torch.bool), [True],
-                steps, g, draws, None)
+    record = torch.tensor([[False], [resampled]])  # (T, B): the filter's record of resampling
+    _mcmc_block(Js, slice(0, 1), zf, zx, ancestors, record, log_w, torch.ones(1, 1, dtype=torch.bool),
+                [True], steps, g, draws, None)
     c = np.bincount(anc.view(-1).numpy(), minlength=L).astype(float)
     prior = c if resampled else torch.exp(log_w).view(-1).numpy()
     pi = prior * np.exp(-0.5 * (zx[0, 0, j0, 0].item() - zf[0, 0, :, 0].numpy()) ** 2)

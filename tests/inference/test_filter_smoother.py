@@ -219,6 +219,22 @@ def test_ffbsi_smoothed_moments_match_rts(record, smoothed_run, method):
     np.testing.assert_allclose(smooth.transition_weights.sum(-1).numpy(), 1.0, atol=1e-10)
 
 
+def test_mcmc_smoother_after_adaptive_resampling_matches_rts(record):
+    """With ``ess_threshold < 1`` the filter keeps its particles at some steps (the MCMC moves then
+    weigh their uniform proposals by ``W``) and resamples at others (proposals from the ancestry):
+    the smoothed moments still match RTS."""
+    sysm, u, y = record
+    sm, sP = rts_smoother(sysm.A, kalman_filter(*sysm.matrices(), u, y))
+    model = sysm.model()
+    data = replicate(u, y, 16)
+    filt = particle_filter(model, data, 250, ess_threshold=0.5, generator=generator(31))
+    kept = (~filt.resampled[1:]).float().mean().item()
+    assert 0.2 < kept < 0.95, kept  # both kinds of steps occur
+    smooth = ffbsi(model, data, filt, method="mcmc", generator=generator(32))
+    mean, cov = smoothed_moments(filt.particles, smooth.log_weights)
+    _check_moments(mean, cov, sm, sP)
+
+
 def test_smoothed_moments_with_missing_data(record):
     sysm, u, y = _missing_record(record)
     sm, sP = rts_smoother(sysm.A, kalman_filter(*sysm.matrices(), u, y))
@@ -479,7 +495,7 @@ def _slice_filter(filt: FilterOutput, b: int, n: int) -> FilterOutput:
     cut = {}
     for field in fields(sel):
         value = getattr(sel, field.name)
-        if field.name == "log_likelihood":
+        if field.name == "log_likelihood" or value is None:
             continue
         if isinstance(value, MaskedScale):
             value = MaskedScale(*(getattr(value, f.name)[:n] for f in fields(value)))

@@ -274,6 +274,7 @@ def to_records(est: EStepOutput, model: StateSpaceModel, data: SequenceBatch) ->
         g(filt.ancestors),
         None,
         steps,
+        None if filt.resampled is None else g(filt.resampled),
     )
     trans = data.transition_mask.unsqueeze(-1)
     record_smoother = SmootherOutput(

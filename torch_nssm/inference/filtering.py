@@ -53,6 +53,10 @@ class FilterOutput:
     log_likelihood_steps : Tensor, shape (T, B), optional
         The increments ``log p(y_k | y_{<k})`` that sum to ``log_likelihood`` (zero where nothing
         is observed).
+    resampled : Tensor, shape (T, B), bool, optional
+        Whether the particles at ``k`` descend from a resampling at ``k`` (else ``ancestors[k]``
+        is the identity and the weights carry over); ``None``: at every step ``k >= 1``
+        (``ess_threshold >= 1``).  The MCMC backward sampler's proposals depend on it.
     """
 
     particles: Tensor
@@ -63,6 +67,7 @@ class FilterOutput:
     ancestors: Tensor
     noise_statistics: Tensor | None = None
     log_likelihood_steps: Tensor | None = None
+    resampled: Tensor | None = None
 
     def select(self, index) -> FilterOutput:
         """The filter output of the sequences ``index``."""
@@ -75,6 +80,7 @@ class FilterOutput:
             self.ancestors[:, index],
             None if self.noise_statistics is None else self.noise_statistics[:, index],
             None if self.log_likelihood_steps is None else self.log_likelihood_steps[:, index],
+            None if self.resampled is None else self.resampled[:, index],
         )
 
 
@@ -201,6 +207,7 @@ def particle_filter(
     if T > 1:
         _process_noise(model, L, generator, particles[1:], lengths)  # x_k = f(.) + noise, added in place
     always = ess_threshold >= 1.0
+    resampled = None if always else torch.zeros(T, B, dtype=torch.bool, device=device)
     # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
     if fast_systematic:
         if streams is not None:  # step k (1 <= k < T_b) of sequence b: its draw k - 1
@@ -252,6 +259,7 @@ def particle_filter(
             elif not always:
                 ess_prev = (S[k - 1] / NORM[k - 1]).square_()
                 do = ess_prev < ess_threshold * L  # (B, 1)
+                resampled[k] = do[:, 0]
                 torch.where(do, anc, arange, out=A[k])
                 log_w = torch.where(do, log_uniform, log_w)
             if nx == 1:
@@ -292,4 +300,6 @@ def particle_filter(
             "particle filter produced non-finite weights or states "
             f"({where}); check that f and g return finite values at the current parameters"
         )
-    return FilterOutput(particles, log_weights, log_lik, ess, scale, ancestors, density.statistics, steps)
+    return FilterOutput(
+        particles, log_weights, log_lik, ess, scale, ancestors, density.statistics, steps, resampled
+    )

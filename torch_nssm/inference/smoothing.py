@@ -462,7 +462,8 @@ def ffbsi(
             draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), kind, reverse=True)
         if method == "mcmc":
             pre = (draws, J_last) if streams is not None else (None, None)
-            _mcmc_block(Jb, blk, zf, zx, filt.ancestors, logW, trans, all_valid, mcmc_steps, generator, *pre)
+            A, kept = filt.ancestors, filt.resampled
+            _mcmc_block(Jb, blk, zf, zx, A, kept, logW, trans, all_valid, mcmc_steps, generator, *pre)
         else:
             cdfs = cumulative_weights(logW[blk])  # (t, B, L)
             for k in range(blk.stop - 1, blk.start - 1, -1):
@@ -502,6 +503,7 @@ def _mcmc_block(
     zf: Tensor,
     zx: Tensor,
     ancestors: Tensor,
+    resampled: Tensor | None,
     logW: Tensor,
     trans: Tensor,
     all_valid: list,
@@ -521,8 +523,8 @@ def _mcmc_block(
     drawn; the backward kernel of that representation, ``pi(i) ~ c_i exp(-|z_x - z_f^i|^2 / 2)``,
     has the proposal ``c_i / L`` as its prior part, so a move is accepted with the ratio of the
     transition densities alone, ``2 log u < d_J - d_{i'}`` with ``d = |z_x - z_f|^2``.  Where a
-    step did not resample (``A_{k+1}`` the identity, ``ess_threshold < 1``) the filter's weights
-    ``W`` enter the ratio, ``2 log u - 2 log W_{i'} < (d_J - 2 log W_J) - d_{i'}`` (uniform
+    step did not resample (the filter's ``resampled`` false, ``ess_threshold < 1``) the filter's
+    weights ``W`` enter the ratio, ``2 log u - 2 log W_{i'} < (d_J - 2 log W_J) - d_{i'}`` (uniform
     proposals).  Either way each move leaves the backward kernel of the filter's particle
     approximation invariant, and a proposal costs a uniform and a lookup, not an inverse-CDF draw.
 
@@ -551,9 +553,10 @@ def _mcmc_block(
         u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).flip(0)
     props = torch.gather(A_next, 2, pick)  # (t, B, S M)
     thr = torch.log(u).to(dtype).mul_(2.0)  # accept where 2 log u < d - d'
-    kept = (A_next == torch.arange(L, device=device)).all(-1, keepdim=True)  # steps not resampled
     log_w2 = None
-    if bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
+    # the steps that kept their particles (the filter's ``resampled``; None: none)
+    kept = None if resampled is None else ~resampled[blk.start + 1 : blk.stop + 1].unsqueeze(-1)
+    if kept is not None and bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
         log_w2 = torch.where(kept, logW[blk], 0.0).mul_(2.0)
         thr -= torch.gather(log_w2, 2, props).view(t, B, steps, M)
     props = props.view(t, B, steps, M)
