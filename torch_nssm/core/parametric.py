@@ -171,6 +171,13 @@ def linear_normal_equations(
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
         c2 = None
+        if A.shape[-2] == 1 and A.shape[-1] <= FEW_FEATURES:  # one output, few features
+            w = w[..., 0] if w.dim() == 4 else w
+            AwA, Awr = _few_feature_products(A[..., 0, :], r[..., 0], w)
+            c2 = C[..., 0, 0, 0] ** 2  # the metric: a scalar weight per (step, sequence), (t or 1, B)
+            G += (AwA * c2[..., None, None]).sum(0)
+            h += (Awr * c2[..., None]).sum(0)
+            continue
         if A.shape[-2] == 1:  # one output: the metric is a scalar weight per (step, sequence)
             w = w[..., 0] if w.dim() == 4 else w
             # applied to the (t, B, F, F) products below, not to every row (one pass fewer)
@@ -189,6 +196,28 @@ def linear_normal_equations(
         G += AwA.sum(0)
         h += Awr.sum(0)
     return G, h
+
+
+#: Up to this many free parameters of a one-output module, :func:`linear_normal_equations` forms
+#: the sums over the particles as one dot product per pair of features (F (F + 3) / 2 passes over
+#: the rows) instead of batched ``(F, L) @ (L, F)`` products per (step, sequence), whose broadcast
+#: weighting and tiny matrix products cost about twice as much at F = 2 (2026-11-25, Table 1 size).
+FEW_FEATURES = 3
+
+
+def _few_feature_products(A: Tensor, r: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """``sum_l w A A^T`` ``(t, B, F, F)`` and ``sum_l w A r`` ``(t, B, F)`` per (step, sequence) from
+    the rows ``A`` ``(t, B, L, F)``, ``r`` and ``w`` ``(t, B, L)``: one weighted copy and one dot
+    product over the particles per feature and pair."""
+    cols = A.unbind(-1)
+    weighted = [w * c for c in cols]
+    F = len(cols)
+    AwA = [[None] * F for _ in range(F)]
+    for i in range(F):
+        for j in range(i + 1):
+            AwA[i][j] = AwA[j][i] = torch.linalg.vecdot(weighted[i], cols[j])
+    Awr = torch.stack([torch.linalg.vecdot(wc, r) for wc in weighted], -1)
+    return torch.stack([torch.stack(row, -1) for row in AwA], -2), Awr
 
 
 def solve_normal_equations(G: Tensor, h: Tensor, ridge: float = 1e-12) -> Tensor:
