@@ -15,7 +15,15 @@ from torch_nssm.core.model import StateSpaceModel
 from torch_nssm.core.noise import StudentTNoise, latent_scale_expectations
 from torch_nssm.core.parametric import LinearInParameters, linear_normal_equations
 from torch_nssm.datasets.paper import PaperObservation, PaperTransition
-from torch_nssm.estimation.mstep import _check, _valid
+from torch_nssm.estimation.mstep import (
+    Regression,
+    _check,
+    _closed_form,
+    _evaluator,
+    _Groups,
+    _residuals,
+    _valid,
+)
 
 DTYPE = torch.float64
 
@@ -144,3 +152,29 @@ def test_latent_scales_written_in_place_equal_the_returned_ones(dof):
     res = latent_scale_expectations(out_log, n_obs, nu, out=(out_lam, out_log))
     assert res[0] is out_lam and res[1] is out_log
     assert torch.equal(out_lam, e_lam) and torch.equal(out_log, e_log)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("fixed", [(), ("t1",)])
+def test_kept_rows_give_the_residuals_of_the_updated_module(shared, fixed):
+    x, u, target, weight, C = _rows(B=3, seed=4, broadcast_target=True)
+    target = target.expand(-1, -1, 1, 1)
+    modules = [Poly((0.5 + 0.1 * b, -0.2, 1.5)) for b in range(1 if shared else 3)]
+    for m in modules:
+        for name in fixed:
+            getattr(m, name).requires_grad_(False)
+    problem = Regression(x, u, target, weight, C)
+    groups = _Groups(shared, 3)
+    kept = []
+    _closed_form(modules, problem, groups, kept)
+    assert len(kept) == len(list(problem.blocks()))
+    free = modules[0].free_mask()
+    theta = groups.per_sequence(torch.stack([m.theta().detach() for m in modules]))[:, free]
+    mask = torch.ones(x.shape[0], 3, 1, dtype=torch.bool)
+    mask[3] = False  # a missing output: zero residuals
+    direct = list(_residuals(_evaluator(modules, groups), problem, mask))
+    from_kept = list(_residuals(theta, problem, mask, kept))
+    for (sl_a, a), (sl_b, b) in zip(direct, from_kept):
+        assert sl_a == sl_b
+        torch.testing.assert_close(b, a, rtol=1e-14, atol=1e-14)
+    assert bool((from_kept[0][1][3] == 0).all())

@@ -146,6 +146,7 @@ def linear_normal_equations(
     target: Tensor,
     weight: Callable[[slice], Tensor],
     whitener: Tensor,
+    keep: list | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Normal equations ``G`` ``(B, F, F)``, ``h`` ``(B, F)`` of the free parameters, per sequence.
 
@@ -154,6 +155,11 @@ def linear_normal_equations(
     the weights ``(t, B, L)`` (or ``(t, B, L, d)`` per whitened component) of the time block ``sl``;
     ``whitener`` ``C`` ``(T or 1, B, d, d)`` defines the metric ``C^T C``.  The whitened components
     of each row are rows of their own; the sums run block by block (bounded memory).
+
+    ``keep``: a list to which ``(sl, A, r)`` is appended for each time block: the free parameters'
+    features ``A`` ``(t, B, L, d, F)`` and the targets less the offset and the fixed parameters'
+    part ``r`` ``(t, B, L, d)``, so that the residuals at other free parameters ``theta`` are
+    ``r - A theta`` without evaluating the module again (the caller holds them all: memory).
     """
     free = template.free_mask()
     T, B = x.shape[:2]
@@ -168,6 +174,8 @@ def linear_normal_equations(
             offset = offset + linear_combination(Phi[..., ~free], fixed.view(1, B, 1, 1, -1))
         A = Phi[..., free] if fixed.shape[-1] else Phi
         r = target[sl] - offset
+        if keep is not None:
+            keep.append((sl, A, r))
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
         c2 = None

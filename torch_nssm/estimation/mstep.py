@@ -29,7 +29,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from .._ops import inverse_cholesky, time_blocks
+from .._ops import inverse_cholesky, linear_combination, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
@@ -206,10 +206,11 @@ def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, T
 
 # ---------------------------------------------------------------------- regressions
 def _closed_form(
-    modules: list[LinearInParameters], problem: Regression, groups: _Groups
+    modules: list[LinearInParameters], problem: Regression, groups: _Groups, keep: list | None = None
 ) -> list[SolverReport]:
     """Set each group's module to its weighted least-squares solution; a solve that is not finite
-    leaves the module unchanged and is reported as rejected."""
+    leaves the module unchanged and is reported as rejected.  ``keep``: filled with the rows'
+    features (:func:`~torch_nssm.core.parametric.linear_normal_equations`)."""
     template = modules[0]
     free = template.free_mask()
     if not bool(free.any()):
@@ -223,6 +224,7 @@ def _closed_form(
         problem.target,
         problem.weight,
         problem.whitener,
+        keep,
     )
     G, h = groups.pool(G), groups.pool(h)
     sol = solve_normal_equations(G, h).reshape(groups.n, -1)
@@ -238,10 +240,15 @@ def _closed_form(
 
 
 def _update_modules(
-    modules: list[nn.Module], problem: Regression, groups: _Groups, options: MStepOptions
+    modules: list[nn.Module],
+    problem: Regression,
+    groups: _Groups,
+    options: MStepOptions,
+    keep: list | None = None,
 ) -> list[SolverReport]:
+    """Each group's module updated (``keep``: filled by the closed form, left empty otherwise)."""
     if _is_linear(modules):
-        return _closed_form(modules, problem, groups)
+        return _closed_form(modules, problem, groups, keep)
 
     def settings(g: int) -> SolverSettings:  # per-sequence streams: each group's own minibatch order
         gen = options.solver.generator
@@ -255,12 +262,20 @@ def _update_modules(
     ]
 
 
-def _residuals(predict, problem: Regression, mask: Tensor | None = None):
-    """Residuals ``target - predict(x, u)`` block by block (zero at missing components)."""
+def _residuals(predict, problem: Regression, mask: Tensor | None = None, kept: list | None = None):
+    """Residuals ``target - predict(x, u)`` block by block (zero at missing components).
+
+    ``kept``: the rows ``(sl, A, r)`` that :func:`_closed_form` kept for ``problem``; ``predict`` is
+    then the free parameters ``(B, F)`` and the residuals are ``r - A theta`` (the module is not
+    evaluated again)."""
     if mask is not None and bool(mask.all()):  # nothing missing: two passes per block fewer
         mask = None
-    for sl in problem.blocks():
-        r = problem.target[sl] - predict(problem.x[sl], problem.u[sl])
+    if kept:
+        theta = predict.view(1, predict.shape[0], 1, 1, -1)
+        blocks = ((sl, r - linear_combination(A, theta)) for sl, A, r in kept)
+    else:
+        blocks = ((sl, problem.target[sl] - predict(problem.x[sl], problem.u[sl])) for sl in problem.blocks())
+    for sl, r in blocks:
         if mask is not None:
             r = torch.where(mask[sl].unsqueeze(2), r, torch.zeros_like(r))
         yield sl, r
@@ -327,16 +342,30 @@ def process_noise_update(
 
 @torch.no_grad()
 def noise_statistics(
-    noise: MeasurementNoise, g: list[nn.Module], data: SequenceBatch, est: EStepOutput, *, shared: bool = True
+    noise: MeasurementNoise,
+    g: list[nn.Module],
+    data: SequenceBatch,
+    est: EStepOutput,
+    *,
+    shared: bool = True,
+    kept: list | None = None,
 ) -> dict[str, Tensor]:
-    """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
+    """The noise model's sufficient statistics at the current ``theta_g``, pooled per group.
+
+    ``kept``: the observation regression's rows from the closed form's pass that set ``theta_g``
+    (:func:`_closed_form`'s ``keep``): the residuals then come from them, ``g`` is not evaluated.
+    """
     groups = _Groups(shared, data.n_sequences)
     scale = est.filter.scale
     regression = observation_regression(data, est)
     W = smoothing_weights(data, est)
-    predict = _evaluator(g, groups)
+    if kept:
+        free = g[0].free_mask()
+        predict = groups.per_sequence(torch.stack([m.theta().detach() for m in g]))[:, free]
+    else:
+        predict = _evaluator(g, groups)
     stats: dict[str, Tensor] = {}
-    for sl, r in _residuals(predict, regression, mask=scale.mask):
+    for sl, r in _residuals(predict, regression, mask=scale.mask, kept=kept):
         block = noise.statistics(r, W(sl), est.e_lam[sl], est.e_log_lam[sl], scale, sl)
         for k, v in block.items():
             stats[k] = stats[k] + v if k in stats else v
@@ -400,9 +429,13 @@ def m_step(
     reports_f = _update_modules(fs, trans, groups, options)
     Rw = process_noise_update(fs, trans, est, data, shared=shared) if options.fit_Rw else Rw_old
 
-    reports_g = _update_modules(gs, observation_regression(data, est), groups, options)
+    obs = observation_regression(data, est)
+    # the closed form's rows kept for the noise statistics' residuals where they fit (saves g's
+    # evaluation on every particle: its cos, at the Table 1 size ~25 ms of an M-step)
+    kept = [] if _rows_bytes(obs, gs[0]) <= KEEP_ROWS_BYTES else None
+    reports_g = _update_modules(gs, obs, groups, options, kept)
     noise = noise_old.updated(
-        noise_statistics(noise_old, gs, data, est, shared=shared),
+        noise_statistics(noise_old, gs, data, est, shared=shared, kept=kept),
         fit_Rv=options.fit_Rv,
         fit_dof=options.fit_dof,
         dof_bounds=options.dof_bounds,
@@ -431,6 +464,21 @@ def m_step(
         new_models.append(candidate)
         errors.append(error)
     return MStepResult(new_models, errors, reports)
+
+
+#: The M-step keeps the observation regression's features and targets (:func:`_closed_form`)
+#: for the noise statistics when they take at most this many bytes (160 MB at the Table 1 size;
+#: larger problems evaluate ``g`` again instead of holding them).
+KEEP_ROWS_BYTES = 1 << 28
+
+
+def _rows_bytes(problem: Regression, module: nn.Module) -> int:
+    """Bytes of the features and targets :func:`_closed_form` would keep for ``problem``."""
+    if not isinstance(module, LinearInParameters):
+        return 0
+    T, B, L = problem.x.shape[:3]
+    d, F = problem.target.shape[-1], int(module.free_mask().sum())
+    return T * B * L * d * (F + 1) * problem.x.element_size()
 
 
 def module_state(module: nn.Module) -> OrderedDict:
