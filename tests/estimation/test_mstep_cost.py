@@ -13,7 +13,7 @@ from torch import nn
 from torch_nssm.core import parametric
 from torch_nssm.core.model import StateSpaceModel
 from torch_nssm.core.noise import StudentTNoise, latent_scale_expectations
-from torch_nssm.core.parametric import LinearInParameters, linear_normal_equations
+from torch_nssm.core.parametric import LinearInParameters, ResidualMoments, linear_normal_equations
 from torch_nssm.datasets.paper import PaperObservation, PaperTransition
 from torch_nssm.estimation.mstep import (
     Regression,
@@ -23,6 +23,7 @@ from torch_nssm.estimation.mstep import (
     _Groups,
     _residuals,
     _valid,
+    process_noise_update,
 )
 
 DTYPE = torch.float64
@@ -178,3 +179,53 @@ def test_kept_rows_give_the_residuals_of_the_updated_module(shared, fixed):
         assert sl_a == sl_b
         torch.testing.assert_close(b, a, rtol=1e-14, atol=1e-14)
     assert bool((from_kept[0][1][3] == 0).all())
+
+
+@pytest.mark.parametrize("shared", [False, True])
+@pytest.mark.parametrize("fixed", [(), ("t1",)])
+def test_scatter_from_the_closed_form_pass_equals_the_residuals(shared, fixed):
+    x, u, target, weight, C = _rows(B=3, seed=5)
+    modules = [Poly((0.5 + 0.1 * b, -0.2, 1.5)) for b in range(1 if shared else 3)]
+    for m in modules:
+        for name in fixed:
+            getattr(m, name).requires_grad_(False)
+    problem = Regression(x, u, target, weight, C)
+    groups = _Groups(shared, 3)
+    _, scatter = _closed_form(modules, problem, groups, scatter=True)
+    assert scatter is not None and scatter.shape == (groups.n,)
+    direct = torch.zeros(3, dtype=DTYPE)
+    for sl, r in _residuals(_evaluator(modules, groups), problem):
+        direct += (weight(sl) * r[..., 0] ** 2).sum((0, 2))
+    torch.testing.assert_close(scatter, groups.pool(direct).reshape(-1), rtol=1e-12, atol=0)
+
+
+def test_scatter_left_to_the_residuals_where_it_cancels():
+    """A nearly perfect fit far from zero: the expanded scatter loses its digits and is refused."""
+    x, u, _, weight, C = _rows(B=2, seed=6)
+    module = Poly((100.0, 0.0, 50.0))
+    Phi, offset = module.features(x, u.unsqueeze(2).expand(*x.shape[:-1], 1))
+    target = offset + (Phi * module.theta().detach()).sum(-1) + 1e-5 * torch.randn_like(offset)
+    problem = Regression(x, u, target, weight, C)
+    start = [Poly((1.0, 0.0, 1.0)), Poly((1.0, 0.0, 1.0))]
+    _, scatter = _closed_form(start, problem, _Groups(False, 2), scatter=True)
+    assert scatter is None
+    one = torch.ones((), dtype=DTYPE)
+    moments = ResidualMoments(torch.eye(2, dtype=DTYPE), one.expand(2), 2 * one)
+    value, reliable = moments.scatter_at(torch.tensor([1.0, 1.0], dtype=DTYPE))  # 2 - 4 + 2 = 0
+    assert float(value) == 0.0 and not bool(reliable)
+
+
+def test_process_noise_update_takes_the_given_scatter():
+    class Est:
+        class smoother:  # noqa: N801
+            residual_scatter = torch.full((3, 1, 1), 0.5, dtype=DTYPE)
+
+    class Data:
+        n_sequences = 3
+        transition_mask = torch.ones(4, 3, dtype=torch.bool)
+
+    scatter = torch.tensor([1.5, 2.5, 3.5], dtype=DTYPE)
+    Rw = process_noise_update([], None, Est, Data, shared=False, scatter=scatter)
+    torch.testing.assert_close(Rw[:, 0, 0], (scatter + 0.5) / 4, rtol=1e-9, atol=0)
+    Rw = process_noise_update([], None, Est, Data, shared=True, scatter=scatter[:1])
+    torch.testing.assert_close(Rw[0, 0], (scatter[0] + 1.5) / 12, rtol=1e-9, atol=0)

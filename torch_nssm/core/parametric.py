@@ -8,6 +8,7 @@ solutions, which the EM engine uses instead of a gradient optimiser.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Callable
 
 import torch
@@ -15,7 +16,7 @@ from torch import Tensor, nn
 
 from .._ops import linear_combination, small_matmul, time_blocks
 
-__all__ = ["LinearInParameters", "linear_normal_equations", "solve_normal_equations"]
+__all__ = ["LinearInParameters", "ResidualMoments", "linear_normal_equations", "solve_normal_equations"]
 
 
 class LinearInParameters(nn.Module):
@@ -147,7 +148,9 @@ def linear_normal_equations(
     weight: Callable[[slice], Tensor],
     whitener: Tensor,
     keep: list | None = None,
-) -> tuple[Tensor, Tensor]:
+    *,
+    scatter: bool = False,
+) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, ResidualMoments | None]:
     """Normal equations ``G`` ``(B, F, F)``, ``h`` ``(B, F)`` of the free parameters, per sequence.
 
     Rows are time-major: ``x`` ``(T, B, L, nx)``, ``u`` ``(T, B, nu)``, ``target`` ``(T, B, L or 1,
@@ -160,6 +163,10 @@ def linear_normal_equations(
     features ``A`` ``(t, B, L, d, F)`` and the targets less the offset and the fixed parameters'
     part ``r`` ``(t, B, L, d)``, so that the residuals at other free parameters ``theta`` are
     ``r - A theta`` without evaluating the module again (the caller holds them all: memory).
+
+    ``scatter=True`` returns a third value: the :class:`ResidualMoments` of the same pass (one
+    output and at most :data:`FEW_FEATURES` free parameters, else ``None``), from which the
+    weighted residual scatter at any free parameters follows without another pass.
     """
     free = template.free_mask()
     T, B = x.shape[:2]
@@ -167,6 +174,10 @@ def linear_normal_equations(
     G = torch.zeros(B, F, F, dtype=x.dtype, device=x.device)
     h = torch.zeros(B, F, dtype=x.dtype, device=x.device)
     fixed = thetas[:, ~free]
+    few = target.shape[-1] == 1 and F <= FEW_FEATURES
+    moments = None
+    if scatter and few:
+        moments = ResidualMoments(torch.zeros_like(G), torch.zeros_like(h), x.new_zeros(B))
     for sl in time_blocks(T, B * x.shape[2]):
         xs = x[sl]
         Phi, offset = template.features(xs, u[sl].unsqueeze(2).expand(*xs.shape[:-1], u.shape[-1]))
@@ -179,9 +190,14 @@ def linear_normal_equations(
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
         c2 = None
-        if A.shape[-2] == 1 and A.shape[-1] <= FEW_FEATURES:  # one output, few features
+        if few:  # one output, few features
             w = w[..., 0] if w.dim() == 4 else w
             AwA, Awr = _few_feature_products(A[..., 0, :], r[..., 0], w)
+            if moments is not None:  # unwhitened, and sum w r^2 (two passes more)
+                r1 = r[..., 0].expand_as(w)
+                moments.G += AwA.sum(0)
+                moments.h += Awr.sum(0)
+                moments.s += torch.linalg.vecdot(w * r1, r1).sum(0)
             c2 = C[..., 0, 0, 0] ** 2  # the metric: a scalar weight per (step, sequence), (t or 1, B)
             G += (AwA * c2[..., None, None]).sum(0)
             h += (Awr * c2[..., None]).sum(0)
@@ -203,7 +219,38 @@ def linear_normal_equations(
             AwA, Awr = AwA * c2.unsqueeze(-1), Awr * c2
         G += AwA.sum(0)
         h += Awr.sum(0)
-    return G, h
+    return (G, h, moments) if scatter else (G, h)
+
+
+@dataclass
+class ResidualMoments:
+    """Unwhitened weighted moments of a one-output regression, per sequence (or pooled).
+
+    With the rows' features ``A`` of the free parameters and ``r = target - offset`` (less the
+    fixed parameters' part): ``G = sum w A A^T`` ``(..., F, F)``, ``h = sum w A r`` ``(..., F)``,
+    ``s = sum w r^2`` ``(...)``.  The weighted residual scatter at free parameters ``theta`` is
+    ``s - 2 theta^T h + theta^T G theta`` (:meth:`scatter_at`).
+    """
+
+    G: Tensor
+    h: Tensor
+    s: Tensor
+
+    #: :meth:`scatter_at` reports a scatter as unreliable where its terms exceed it by more than
+    #: this factor: their rounding errors (~1e-16 each) then reach ~1e-12 of it.
+    MAX_CANCELLATION = 1e4
+
+    def scatter_at(self, theta: Tensor) -> tuple[Tensor, Tensor]:
+        """The scatter at ``theta`` ``(..., F)`` (clipped at zero), and whether it is reliable:
+        ``s + 2 |theta|^T |h| + |theta|^T |G| |theta|`` at most :attr:`MAX_CANCELLATION` times
+        it (else the caller computes it from the residuals)."""
+        t = theta.unsqueeze(-1)
+        value = self.s - 2.0 * (theta * self.h).sum(-1) + (t.transpose(-1, -2) @ self.G @ t)[..., 0, 0]
+        a = t.abs()
+        quadratic = (a.transpose(-1, -2) @ self.G.abs() @ a)[..., 0, 0]
+        terms = self.s + 2.0 * (theta.abs() * self.h.abs()).sum(-1) + quadratic
+        value = value.clamp_min(0.0)
+        return value, terms <= self.MAX_CANCELLATION * value
 
 
 #: Up to this many free parameters of a one-output module, :func:`linear_normal_equations` forms

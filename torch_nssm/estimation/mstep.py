@@ -32,7 +32,12 @@ from torch import Tensor, nn
 from .._ops import inverse_cholesky, linear_combination, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
-from ..core.parametric import LinearInParameters, linear_normal_equations, solve_normal_equations
+from ..core.parametric import (
+    LinearInParameters,
+    ResidualMoments,
+    linear_normal_equations,
+    solve_normal_equations,
+)
 from ..inference.random import SequenceStreams
 from .estep import EStepOutput
 from .independent import StackedModule
@@ -206,17 +211,25 @@ def _evaluator(modules: list[nn.Module], groups: _Groups) -> Callable[[Tensor, T
 
 # ---------------------------------------------------------------------- regressions
 def _closed_form(
-    modules: list[LinearInParameters], problem: Regression, groups: _Groups, keep: list | None = None
-) -> list[SolverReport]:
+    modules: list[LinearInParameters],
+    problem: Regression,
+    groups: _Groups,
+    keep: list | None = None,
+    scatter: bool = False,
+) -> tuple[list[SolverReport], Tensor | None]:
     """Set each group's module to its weighted least-squares solution; a solve that is not finite
     leaves the module unchanged and is reported as rejected.  ``keep``: filled with the rows'
-    features (:func:`~torch_nssm.core.parametric.linear_normal_equations`)."""
+    features (:func:`~torch_nssm.core.parametric.linear_normal_equations`).
+
+    ``scatter=True``: also the weighted scatter of the residuals at the new parameters per group
+    ``(G,)`` from the same pass (:class:`~torch_nssm.core.parametric.ResidualMoments`), where it
+    applies and is reliable; else ``None``."""
     template = modules[0]
     free = template.free_mask()
     if not bool(free.any()):
-        return [SolverReport(math.nan, math.nan) for _ in modules]
+        return [SolverReport(math.nan, math.nan) for _ in modules], None
     thetas = torch.stack([m.theta().detach() for m in modules])  # (G, P)
-    G, h = linear_normal_equations(
+    G, h, *moments = linear_normal_equations(
         template,
         groups.per_sequence(thetas),
         problem.x,
@@ -225,18 +238,30 @@ def _closed_form(
         problem.weight,
         problem.whitener,
         keep,
+        scatter=scatter,
     )
     G, h = groups.pool(G), groups.pool(h)
     sol = solve_normal_equations(G, h).reshape(groups.n, -1)
-    reports = []
+    reports, solved = [], []
     for module, theta, s in zip(modules, thetas, sol):
         finite = bool(torch.isfinite(s).all())
         if finite:
             new = theta.clone()
             new[free] = s
             module.set_theta(new)
+        solved.append(s if finite else theta[free])
         reports.append(SolverReport(math.nan, math.nan, rejected=not finite))
-    return reports
+    moments = moments[0] if moments else None
+    if moments is None:
+        return reports, None
+    F, n = int(free.sum()), groups.n
+    pooled = ResidualMoments(
+        groups.pool(moments.G).reshape(n, F, F),
+        groups.pool(moments.h).reshape(n, F),
+        groups.pool(moments.s).reshape(n),
+    )
+    value, reliable = pooled.scatter_at(torch.stack(solved))
+    return reports, value if bool(reliable.all()) else None
 
 
 def _update_modules(
@@ -245,10 +270,12 @@ def _update_modules(
     groups: _Groups,
     options: MStepOptions,
     keep: list | None = None,
-) -> list[SolverReport]:
-    """Each group's module updated (``keep``: filled by the closed form, left empty otherwise)."""
+    scatter: bool = False,
+) -> tuple[list[SolverReport], Tensor | None]:
+    """Each group's module updated (``keep``: filled by the closed form, left empty otherwise),
+    and with ``scatter`` the closed form's residual scatter at the new parameters (or ``None``)."""
     if _is_linear(modules):
-        return _closed_form(modules, problem, groups, keep)
+        return _closed_form(modules, problem, groups, keep, scatter)
 
     def settings(g: int) -> SolverSettings:  # per-sequence streams: each group's own minibatch order
         gen = options.solver.generator
@@ -256,10 +283,11 @@ def _update_modules(
             return replace(options.solver, generator=gen.cpu_generator(g))
         return options.solver
 
-    return [
+    reports = [
         fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, settings(g))
         for g, m in enumerate(modules)
     ]
+    return reports, None
 
 
 def _residuals(predict, problem: Regression, mask: Tensor | None = None, kept: list | None = None):
@@ -325,19 +353,34 @@ def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:
 
 @torch.no_grad()
 def process_noise_update(
-    f: list[nn.Module], regression: Regression, est: EStepOutput, data: SequenceBatch, *, shared: bool = True
+    f: list[nn.Module],
+    regression: Regression,
+    est: EStepOutput,
+    data: SequenceBatch,
+    *,
+    shared: bool = True,
+    scatter: Tensor | None = None,
 ) -> Tensor:
     """Closed-form ``Rw`` (eq. 31, docs/method.md §7) at the current ``theta_f`` of each group:
     the weighted scatter of the regression's residuals plus the parameter-free scatter, over the
-    number of transitions."""
+    number of transitions.
+
+    ``scatter``: that weighted scatter per group ``(G,)`` where the caller has it (one state: from
+    the closed form's pass, :func:`_closed_form`); else a pass over the rows computes it.
+    """
     groups = _Groups(shared, data.n_sequences)
-    S = est.smoother.residual_scatter.clone()  # (B, nx, nx)
-    predict = _evaluator(f, groups)
-    for sl, r in _residuals(predict, regression):
-        rw = r * regression.row_weight(sl).unsqueeze(-1)
-        S += (rw.transpose(-1, -2) @ r).sum(0)
+    if scatter is not None:
+        S = groups.pool(est.smoother.residual_scatter)
+        S = S + scatter.reshape(S.shape)
+    else:
+        S = est.smoother.residual_scatter.clone()  # (B, nx, nx)
+        predict = _evaluator(f, groups)
+        for sl, r in _residuals(predict, regression):
+            rw = r * regression.row_weight(sl).unsqueeze(-1)
+            S += (rw.transpose(-1, -2) @ r).sum(0)
+        S = groups.pool(S)
     n = groups.pool(data.transition_mask.sum(0).to(S.dtype)).clamp_min(1)
-    return symmetric_pd(groups.pool(S) / n[..., None, None], 1e-10)
+    return symmetric_pd(S / n[..., None, None], 1e-10)
 
 
 @torch.no_grad()
@@ -426,14 +469,17 @@ def m_step(
     noise_old = models[0].noise if shared else type(models[0].noise).stack([m.noise for m in models])
 
     trans = transition_regression(Rw_old, data, est)
-    reports_f = _update_modules(fs, trans, groups, options)
-    Rw = process_noise_update(fs, trans, est, data, shared=shared) if options.fit_Rw else Rw_old
+    # Rw's scatter from the closed form's pass where it gives it reliably (one pass fewer)
+    reports_f, scatter = _update_modules(fs, trans, groups, options, scatter=options.fit_Rw)
+    Rw = Rw_old
+    if options.fit_Rw:
+        Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
 
     obs = observation_regression(data, est)
     # the closed form's rows kept for the noise statistics' residuals where they fit (saves g's
     # evaluation on every particle: its cos, at the Table 1 size ~25 ms of an M-step)
     kept = [] if _rows_bytes(obs, gs[0]) <= KEEP_ROWS_BYTES else None
-    reports_g = _update_modules(gs, obs, groups, options, kept)
+    reports_g, _ = _update_modules(gs, obs, groups, options, kept)
     noise = noise_old.updated(
         noise_statistics(noise_old, gs, data, est, shared=shared, kept=kept),
         fit_Rv=options.fit_Rv,
