@@ -157,32 +157,6 @@ def test_latent_scales_written_in_place_equal_the_returned_ones(dof):
 
 @pytest.mark.parametrize("shared", [False, True])
 @pytest.mark.parametrize("fixed", [(), ("t1",)])
-def test_kept_rows_give_the_residuals_of_the_updated_module(shared, fixed):
-    x, u, target, weight, C = _rows(B=3, seed=4, broadcast_target=True)
-    target = target.expand(-1, -1, 1, 1)
-    modules = [Poly((0.5 + 0.1 * b, -0.2, 1.5)) for b in range(1 if shared else 3)]
-    for m in modules:
-        for name in fixed:
-            getattr(m, name).requires_grad_(False)
-    problem = Regression(x, u, target, weight, C)
-    groups = _Groups(shared, 3)
-    kept = []
-    _closed_form(modules, problem, groups, kept)
-    assert len(kept) == len(list(problem.blocks()))
-    free = modules[0].free_mask()
-    theta = groups.per_sequence(torch.stack([m.theta().detach() for m in modules]))[:, free]
-    mask = torch.ones(x.shape[0], 3, 1, dtype=torch.bool)
-    mask[3] = False  # a missing output: zero residuals
-    direct = list(_residuals(_evaluator(modules, groups), problem, mask))
-    from_kept = list(_residuals(theta, problem, mask, kept))
-    for (sl_a, a), (sl_b, b) in zip(direct, from_kept):
-        assert sl_a == sl_b
-        torch.testing.assert_close(b, a, rtol=1e-14, atol=1e-14)
-    assert bool((from_kept[0][1][3] == 0).all())
-
-
-@pytest.mark.parametrize("shared", [False, True])
-@pytest.mark.parametrize("fixed", [(), ("t1",)])
 def test_scatter_from_the_closed_form_pass_equals_the_residuals(shared, fixed):
     x, u, target, weight, C = _rows(B=3, seed=5)
     modules = [Poly((0.5 + 0.1 * b, -0.2, 1.5)) for b in range(1 if shared else 3)]

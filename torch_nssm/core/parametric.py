@@ -147,7 +147,6 @@ def linear_normal_equations(
     target: Tensor,
     weight: Callable[[slice], Tensor],
     whitener: Tensor,
-    keep: list | None = None,
     *,
     scatter: bool = False,
 ) -> tuple[Tensor, Tensor] | tuple[Tensor, Tensor, ResidualMoments | None]:
@@ -158,11 +157,6 @@ def linear_normal_equations(
     the weights ``(t, B, L)`` (or ``(t, B, L, d)`` per whitened component) of the time block ``sl``;
     ``whitener`` ``C`` ``(T or 1, B, d, d)`` defines the metric ``C^T C``.  The whitened components
     of each row are rows of their own; the sums run block by block (bounded memory).
-
-    ``keep``: a list to which ``(sl, A, r)`` is appended for each time block: the free parameters'
-    features ``A`` ``(t, B, L, d, F)`` and the targets less the offset and the fixed parameters'
-    part ``r`` ``(t, B, L, d)``, so that the residuals at other free parameters ``theta`` are
-    ``r - A theta`` without evaluating the module again (the caller holds them all: memory).
 
     ``scatter=True`` returns a third value: the :class:`ResidualMoments` of the same pass (one
     output and at most :data:`FEW_FEATURES` free parameters, else ``None``), from which the
@@ -185,8 +179,6 @@ def linear_normal_equations(
             offset = offset + linear_combination(Phi[..., ~free], fixed.view(1, B, 1, 1, -1))
         A = Phi[..., free] if fixed.shape[-1] else Phi
         r = target[sl] - offset
-        if keep is not None:
-            keep.append((sl, A, r))
         C = (whitener if whitener.shape[0] == 1 else whitener[sl]).unsqueeze(2)  # (t, B, 1, d, d)
         w = weight(sl)
         c2 = None

@@ -29,7 +29,7 @@ from typing import Callable
 import torch
 from torch import Tensor, nn
 
-from .._ops import inverse_cholesky, linear_combination, time_blocks
+from .._ops import inverse_cholesky, time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise, symmetric_pd
 from ..core.parametric import (
@@ -214,12 +214,10 @@ def _closed_form(
     modules: list[LinearInParameters],
     problem: Regression,
     groups: _Groups,
-    keep: list | None = None,
     scatter: bool = False,
 ) -> tuple[list[SolverReport], Tensor | None]:
     """Set each group's module to its weighted least-squares solution; a solve that is not finite
-    leaves the module unchanged and is reported as rejected.  ``keep``: filled with the rows'
-    features (:func:`~torch_nssm.core.parametric.linear_normal_equations`).
+    leaves the module unchanged and is reported as rejected.
 
     ``scatter=True``: also the weighted scatter of the residuals at the new parameters per group
     ``(G,)`` from the same pass (:class:`~torch_nssm.core.parametric.ResidualMoments`), where it
@@ -237,7 +235,6 @@ def _closed_form(
         problem.target,
         problem.weight,
         problem.whitener,
-        keep,
         scatter=scatter,
     )
     G, h = groups.pool(G), groups.pool(h)
@@ -269,13 +266,12 @@ def _update_modules(
     problem: Regression,
     groups: _Groups,
     options: MStepOptions,
-    keep: list | None = None,
     scatter: bool = False,
 ) -> tuple[list[SolverReport], Tensor | None]:
-    """Each group's module updated (``keep``: filled by the closed form, left empty otherwise),
-    and with ``scatter`` the closed form's residual scatter at the new parameters (or ``None``)."""
+    """Each group's module updated, and with ``scatter`` the closed form's residual scatter at the
+    new parameters (or ``None``)."""
     if _is_linear(modules):
-        return _closed_form(modules, problem, groups, keep, scatter)
+        return _closed_form(modules, problem, groups, scatter)
 
     def settings(g: int) -> SolverSettings:  # per-sequence streams: each group's own minibatch order
         gen = options.solver.generator
@@ -290,20 +286,12 @@ def _update_modules(
     return reports, None
 
 
-def _residuals(predict, problem: Regression, mask: Tensor | None = None, kept: list | None = None):
-    """Residuals ``target - predict(x, u)`` block by block (zero at missing components).
-
-    ``kept``: the rows ``(sl, A, r)`` that :func:`_closed_form` kept for ``problem``; ``predict`` is
-    then the free parameters ``(B, F)`` and the residuals are ``r - A theta`` (the module is not
-    evaluated again)."""
+def _residuals(predict, problem: Regression, mask: Tensor | None = None):
+    """Residuals ``target - predict(x, u)`` block by block (zero at missing components)."""
     if mask is not None and bool(mask.all()):  # nothing missing: two passes per block fewer
         mask = None
-    if kept:
-        theta = predict.view(1, predict.shape[0], 1, 1, -1)
-        blocks = ((sl, r - linear_combination(A, theta)) for sl, A, r in kept)
-    else:
-        blocks = ((sl, problem.target[sl] - predict(problem.x[sl], problem.u[sl])) for sl in problem.blocks())
-    for sl, r in blocks:
+    for sl in problem.blocks():
+        r = problem.target[sl] - predict(problem.x[sl], problem.u[sl])
         if mask is not None:
             r = torch.where(mask[sl].unsqueeze(2), r, torch.zeros_like(r))
         yield sl, r
@@ -385,30 +373,16 @@ def process_noise_update(
 
 @torch.no_grad()
 def noise_statistics(
-    noise: MeasurementNoise,
-    g: list[nn.Module],
-    data: SequenceBatch,
-    est: EStepOutput,
-    *,
-    shared: bool = True,
-    kept: list | None = None,
+    noise: MeasurementNoise, g: list[nn.Module], data: SequenceBatch, est: EStepOutput, *, shared: bool = True
 ) -> dict[str, Tensor]:
-    """The noise model's sufficient statistics at the current ``theta_g``, pooled per group.
-
-    ``kept``: the observation regression's rows from the closed form's pass that set ``theta_g``
-    (:func:`_closed_form`'s ``keep``): the residuals then come from them, ``g`` is not evaluated.
-    """
+    """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
     groups = _Groups(shared, data.n_sequences)
     scale = est.filter.scale
     regression = observation_regression(data, est)
     W = smoothing_weights(data, est)
-    if kept:
-        free = g[0].free_mask()
-        predict = groups.per_sequence(torch.stack([m.theta().detach() for m in g]))[:, free]
-    else:
-        predict = _evaluator(g, groups)
+    predict = _evaluator(g, groups)
     stats: dict[str, Tensor] = {}
-    for sl, r in _residuals(predict, regression, mask=scale.mask, kept=kept):
+    for sl, r in _residuals(predict, regression, mask=scale.mask):
         block = noise.statistics(r, W(sl), est.e_lam[sl], est.e_log_lam[sl], scale, sl)
         for k, v in block.items():
             stats[k] = stats[k] + v if k in stats else v
@@ -475,13 +449,9 @@ def m_step(
     if options.fit_Rw:
         Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
 
-    obs = observation_regression(data, est)
-    # the closed form's rows kept for the noise statistics' residuals where they fit (saves g's
-    # evaluation on every particle: its cos, at the Table 1 size ~25 ms of an M-step)
-    kept = [] if _rows_bytes(obs, gs[0]) <= KEEP_ROWS_BYTES else None
-    reports_g, _ = _update_modules(gs, obs, groups, options, kept)
+    reports_g, _ = _update_modules(gs, observation_regression(data, est), groups, options)
     noise = noise_old.updated(
-        noise_statistics(noise_old, gs, data, est, shared=shared, kept=kept),
+        noise_statistics(noise_old, gs, data, est, shared=shared),
         fit_Rv=options.fit_Rv,
         fit_dof=options.fit_dof,
         dof_bounds=options.dof_bounds,
@@ -510,21 +480,6 @@ def m_step(
         new_models.append(candidate)
         errors.append(error)
     return MStepResult(new_models, errors, reports)
-
-
-#: The M-step keeps the observation regression's features and targets (:func:`_closed_form`)
-#: for the noise statistics when they take at most this many bytes (160 MB at the Table 1 size;
-#: larger problems evaluate ``g`` again instead of holding them).
-KEEP_ROWS_BYTES = 1 << 28
-
-
-def _rows_bytes(problem: Regression, module: nn.Module) -> int:
-    """Bytes of the features and targets :func:`_closed_form` would keep for ``problem``."""
-    if not isinstance(module, LinearInParameters):
-        return 0
-    T, B, L = problem.x.shape[:3]
-    d, F = problem.target.shape[-1], int(module.free_mask().sum())
-    return T * B * L * d * (F + 1) * problem.x.element_size()
 
 
 def module_state(module: nn.Module) -> OrderedDict:
