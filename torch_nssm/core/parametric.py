@@ -248,7 +248,8 @@ class ResidualMoments:
 #: Up to this many free parameters of a one-output module, :func:`linear_normal_equations` forms
 #: the sums over the particles as one dot product per pair of features (F (F + 3) / 2 passes over
 #: the rows) instead of batched ``(F, L) @ (L, F)`` products per (step, sequence), whose broadcast
-#: weighting and tiny matrix products cost about twice as much at F = 2 (2026-11-25, Table 1 size).
+#: weighting and tiny matrix products cost more: the closed form of the paper's f (F = 2) 69 -> 48 ms
+#: at the Table 1 size, a three-feature module on 3e6 rows 43 -> 35 ms (2026-11-25, one thread).
 FEW_FEATURES = 3
 
 
