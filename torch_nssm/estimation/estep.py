@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -102,9 +103,18 @@ def latent_scales(
     e_lam = _workspace.empty(stats.shape, stats.dtype, stats.device)
     e_log = stats if overwrite or mine else _workspace.empty(stats.shape, stats.dtype, stats.device)
     rows = stats[0].numel()
+    into = _writes_into(model.noise)
     for sl in time_blocks(stats.shape[0], rows):  # block by block: the temporaries stay in cache
-        e_lam[sl], e_log[sl] = model.noise.latent_expectations(stats, filt.scale, sl)
+        if into:  # the same values, written in place (no copies)
+            model.noise.latent_expectations(stats, filt.scale, sl, out=(e_lam[sl], e_log[sl]))
+        else:
+            e_lam[sl], e_log[sl] = model.noise.latent_expectations(stats, filt.scale, sl)
     return e_lam, e_log
+
+
+def _writes_into(noise) -> bool:
+    """Whether ``noise.latent_expectations`` takes ``out`` (arrays of the block to write into)."""
+    return "out" in inspect.signature(noise.latent_expectations).parameters
 
 
 @torch.no_grad()
