@@ -19,12 +19,15 @@ def _kernel(zf: torch.Tensor, lw: torch.Tensor, zx: torch.Tensor, row: int, nxt:
 def test_exact_backward_draws_follow_the_backward_kernel(crowded):
     """Every (row, next particle) pair's draws follow its kernel within 5 binomial standard errors
     per particle (cells with probability above 1e-3), with the pairs spread over the rows (one
-    padded batched product) or crowded in one row of many (the rows' predictions gathered)."""
+    padded batched product) or crowded in one row of many (the rows' predictions gathered), and
+    particles of zero filter weight are never drawn."""
     gen = torch.Generator().manual_seed(0)
     R, L, nx, n = (12, 40, 2, 4000)
     zf = torch.randn(R, L, nx, dtype=torch.float64, generator=gen) * 1.5
     zx = torch.randn(R, L, nx, dtype=torch.float64, generator=gen) * 1.5
-    lw = torch.log_softmax(torch.randn(R, L, dtype=torch.float64, generator=gen) * 2.0, -1)
+    lw = torch.randn(R, L, dtype=torch.float64, generator=gen) * 2.0
+    lw[:, ::9] = -torch.inf  # particles without filter weight: never drawn (no NaN from the padding)
+    lw = torch.log_softmax(lw, -1)
     if crowded:  # all pairs in row 5: R * C > 4 U
         pairs = [(5, j) for j in (0, 3, 7, 11)]
     else:
@@ -41,4 +44,4 @@ def test_exact_backward_draws_follow_the_backward_kernel(crowded):
         freq = torch.bincount(draws, minlength=L).double() / draws.numel()
         z = torch.where(p > 1e-3, (freq - p) / torch.sqrt(p * (1 - p) / draws.numel()), 0.0)
         assert float(z.abs().max()) < 5.0, (r, j)
-        assert bool((freq[p < 1e-12] == 0).all())  # nothing drawn where the kernel has no mass
+        assert bool((freq[p < 1e-12] == 0).all()) and bool((freq[::9] == 0).all())  # nor without mass
