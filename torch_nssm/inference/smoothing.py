@@ -931,22 +931,26 @@ def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tenso
     r, j = pairs // L, pairs % L
     U = pairs.numel()
     a = zx[r, j]  # (U, nx)
-    # -|a - zf_i|^2 / 2 = a . zf_i - |zf_i|^2 / 2 - |a|^2 / 2, the last the same for every i (the
-    # table is normalised): the products a . zf_i by one batched product of each row's pairs,
-    # padded to the most a row has, against the row's predictions (no (U, L, nx) copy of them)
+    # log W_i - |a - zf_i|^2 / 2 = a . zf_i + (log W_i - |zf_i|^2 / 2) - |a|^2 / 2, the last the same
+    # for every i (the table is normalised): the first two by one batched product of each row's
+    # pairs, padded to the most a row has and extended by a 1, against the row's predictions
+    # extended by the pair-free part (no (U, L, nx) copy of them, one pass over the tables)
+    base = lw - 0.5 * squared_norm(zf)  # (R, L)
     counts = torch.bincount(r, minlength=R)
     C = int(counts.max())
     if R * C <= 4 * U:
         slot = torch.arange(U, device=r.device) - (torch.cumsum(counts, 0) - counts)[r]
-        A = torch.zeros(R, C, nx, dtype=zf.dtype, device=zf.device)
-        A[r, slot] = a
-        dots = torch.bmm(A, zf.mT)[r, slot]  # (U, L)
+        A = torch.zeros(R, C, nx + 1, dtype=zf.dtype, device=zf.device)
+        A[r, slot] = torch.cat([a, torch.ones_like(a[:, :1])], -1)
+        logits = torch.bmm(A, torch.cat([zf, base.unsqueeze(-1)], -1).mT)[r, slot]  # (U, L)
     else:  # pairs crowded in a few of many rows: the rows' predictions gathered instead
-        dots = torch.bmm(zf[r], a.unsqueeze(-1)).squeeze(-1)
-    cdf = cumulative_weights(lw[r] - 0.5 * squared_norm(zf)[r] + dots)
-    offset = torch.arange(pairs.numel(), dtype=cdf.dtype, device=cdf.device).unsqueeze(-1)
+        logits = torch.bmm(zf[r], a.unsqueeze(-1)).squeeze(-1).add_(base[r])
+    # the tables' cumulative weights, normalised and laid end to end (row q in (q, q + 1]), in place
+    cdf = logits.sub_(logits.amax(-1, keepdim=True)).exp_().cumsum_(-1)
+    cdf.div_(cdf[:, -1:].clone())
+    cdf.add_(torch.arange(U, dtype=cdf.dtype, device=cdf.device).unsqueeze(-1))
     u = torch.rand(rows.numel(), dtype=cdf.dtype, device=cdf.device, generator=generator)
-    pos = torch.searchsorted((cdf + offset).view(-1), u + which.to(cdf.dtype), right=True)
+    pos = torch.searchsorted(cdf.view(-1), u + which.to(cdf.dtype), right=True)
     return (pos - which * L).clamp_(0, L - 1)
 
 
