@@ -296,6 +296,38 @@ def test_frozen_paper_and_stacked_modules_equal_forward():
         _assert_frozen_equals_forward(module, x, u)
 
 
+@pytest.mark.parametrize("bias, nu", [(False, 2), (True, 1), (True, 0)])
+def test_stacked_linear_blocks_evaluate_without_their_features(bias, nu):
+    """Stacked ``LinearTransition`` / ``LinearObservation`` (``fit_independent``): the per-pass
+    evaluator takes each sequence's matrices once and equals ``forward`` (and ``predict``, which
+    builds the Kronecker features) to rounding."""
+    from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+    from torch_nssm.estimation.independent import StackedModule
+
+    g = torch.Generator().manual_seed(5)
+    B, L, nx, p = 3, 6, 2, 3
+    rand = lambda *shape: torch.randn(*shape, dtype=DTYPE, generator=g)  # noqa: E731
+    fs = [LinearTransition(nx, nu, A=rand(nx, nx), B=rand(nx, nu).numpy(), bias=bias) for _ in range(B)]
+    gs = [
+        LinearObservation(nx, nu, p, C=rand(p, nx), D=rand(p, nu).numpy(), d=rand(p).numpy(),
+                          feedthrough=True)
+        for _ in range(B)
+    ]
+    if bias:
+        for f in fs:
+            f.c.data = rand(nx)
+    x, u = rand(B, L, nx), rand(B, L, nu)
+    for modules in (fs, gs):
+        stacked = StackedModule(modules)
+        frozen = stacked.frozen()
+        expected = torch.stack([m(x[b], u[b]) for b, m in enumerate(modules)])
+        torch.testing.assert_close(frozen(x, u), expected, rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(stacked(x, u), expected, rtol=1e-12, atol=1e-12)
+        theta = modules[0].theta()
+        torch.testing.assert_close(modules[0].frozen_predict(theta)(x[0], u[0]),
+                                   modules[0].predict(x[0], u[0], theta), rtol=1e-12, atol=1e-12)
+
+
 def test_frozen_evaluator_equals_forward_and_respects_overrides():
     """``frozen()`` (the filter's per-pass evaluator) computes ``forward`` with the parameters as
     they were when it was made; a subclass with its own ``forward`` or a hook gets the module."""

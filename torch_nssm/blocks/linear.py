@@ -6,7 +6,7 @@ start (:mod:`torch_nssm.blocks.warm_start`) and a fast first model of any system
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Union
 
 import numpy as np
@@ -14,7 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import _validation as V
-from .._ops import broadcast_leading
+from .._ops import broadcast_leading, small_matmul
 from ..core.parametric import LinearInParameters
 
 __all__ = ["LinearTransition", "LinearObservation"]
@@ -35,6 +35,22 @@ def _kron_rows(z: Tensor, d: int) -> Tensor:
     eye = torch.eye(d, dtype=z.dtype, device=z.device)
     m = z.shape[-1]
     return (eye[:, :, None] * z[..., None, None, :]).reshape(*z.shape[:-1], d, d * m)
+
+
+def _affine(theta: Tensor, d: int, nx: int, nu: int, offset: bool) -> Callable[[Tensor, Tensor], Tensor]:
+    """``(x, u) -> M x + N u (+ c)`` for ``theta = (M, N[, c])`` flattened row-major, ``(..., P)``
+    broadcast against the rows' leading dimensions (tiny matrices: elementwise products)."""
+    M = theta[..., : d * nx].unflatten(-1, (d, nx))
+    N = theta[..., d * nx : d * (nx + nu)].unflatten(-1, (d, nu)) if nu else None
+    c = theta[..., d * (nx + nu) : d * (nx + nu + 1)] if offset else None
+
+    def affine(x: Tensor, u: Tensor) -> Tensor:
+        out = small_matmul(M, x.unsqueeze(-1)).squeeze(-1)
+        if N is not None:
+            out = out + small_matmul(N, u.unsqueeze(-1)).squeeze(-1)
+        return out if c is None else out + c
+
+    return affine
 
 
 class LinearTransition(LinearInParameters):
@@ -89,6 +105,12 @@ class LinearTransition(LinearInParameters):
         # particle filter calls f at every step; the M-step's normal equations use features())
         out = x @ self.A.T + u @ self.B.T
         return out + self.c if self.bias else out
+
+    def frozen_predict(self, theta: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
+        """``A x + B u (+ c)`` at ``theta`` ``(..., P)`` (e.g. one row per stacked sequence), its
+        matrices taken once per pass: :meth:`predict` would build the Kronecker features at every
+        filter step."""
+        return _affine(theta, self.nx, self.nx, self.nu, self.bias)
 
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., nx, P)`` over ``(A, B[, c])`` and a zero offset ``(..., nx)``."""
@@ -157,6 +179,11 @@ class LinearObservation(LinearInParameters):
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         # features() @ theta without the Kronecker features, as LinearTransition.forward
         return x @ self.C.T + u @ self.D.T + self.d
+
+    def frozen_predict(self, theta: Tensor) -> Callable[[Tensor, Tensor], Tensor]:
+        """``C x + D u + d`` at ``theta`` ``(..., P)``, its matrices taken once per pass (as
+        :meth:`LinearTransition.frozen_predict`)."""
+        return _affine(theta, self.p, self.nx, self.nu, True)
 
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """``Phi`` of shape ``(..., p, P)`` over ``(C, D, d)`` and a zero offset ``(..., p)``."""
