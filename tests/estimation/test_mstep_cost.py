@@ -189,6 +189,16 @@ def test_scatter_left_to_the_residuals_where_it_cancels():
     assert float(value) == 0.0 and not bool(reliable)
 
 
+def test_scatter_shortcut_only_where_its_precision_allows():
+    """A mild cancellation (terms ~10x the scatter) is fine in double precision and refused in
+    single precision, whose rounding would show at ~1e-6 of the terms."""
+    for dtype, expected in ((torch.float64, True), (torch.float32, False)):
+        one = torch.ones((), dtype=dtype)
+        moments = ResidualMoments(torch.eye(2, dtype=dtype), one.expand(2), 2.4 * one)
+        value, reliable = moments.scatter_at(torch.tensor([1.0, 1.0], dtype=dtype))  # 2.4 - 4 + 2 = 0.4
+        assert float(value) == pytest.approx(0.4, rel=1e-6) and bool(reliable) is expected, dtype
+
+
 def test_process_noise_update_takes_the_given_scatter():
     class Est:
         class smoother:  # noqa: N801

@@ -252,7 +252,10 @@ class ResidualMoments:
     s: Tensor
 
     #: :meth:`scatter_at` reports a scatter as unreliable where its terms exceed it by more than
-    #: this factor: their rounding errors (~1e-16 each) then reach ~1e-12 of it.
+    #: this factor: their rounding errors (~1e-16 each in double precision) then reach ~1e-12 of
+    #: it.  Scaled by the machine epsilon of other dtypes: in single precision (~6e-8 each) no
+    #: cancellation is small enough, and the residuals' pass is always taken (a float32 model's
+    #: scatter was 1.7e-4 off at a cancellation of ~10, where the residuals give ~1e-6).
     MAX_CANCELLATION = 1e4
 
     def scatter_at(self, theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -265,7 +268,8 @@ class ResidualMoments:
         quadratic = (a.transpose(-1, -2) @ self.G.abs() @ a)[..., 0, 0]
         terms = self.s + 2.0 * (theta.abs() * self.h.abs()).sum(-1) + quadratic
         value = value.clamp_min(0.0)
-        return value, terms <= self.MAX_CANCELLATION * value
+        limit = self.MAX_CANCELLATION * torch.finfo(torch.float64).eps / torch.finfo(value.dtype).eps
+        return value, terms <= limit * value
 
 
 #: Up to this many free parameters of a one-output module, :func:`linear_normal_equations` forms

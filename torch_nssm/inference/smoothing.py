@@ -81,18 +81,11 @@ class SmootherOutput:
         E-step costs ~25 ms of memory traffic alone at the Table 1 size.
     """
 
-    _log_weights: Tensor | None
+    log_weights: Tensor | None  # a property over ``_log_weights`` (below the class)
     next_mean: Tensor
     transition_weights: Tensor
     residual_scatter: Tensor
     weights: Tensor | None = None
-
-    @property
-    def log_weights(self) -> Tensor:
-        """Log marginal smoothing weights ``(T, B, L)``."""
-        if self._log_weights is None:
-            self._log_weights = torch.log(self.weights)
-        return self._log_weights
 
     def select(self, index) -> SmootherOutput:
         """The smoother output of the sequences ``index``."""
@@ -103,6 +96,24 @@ class SmootherOutput:
             self.residual_scatter[index],
             None if self.weights is None else self.weights[:, index],
         )
+
+
+def _lazy_log_weights(self: SmootherOutput) -> Tensor:
+    if self._log_weights is None:
+        self._log_weights = torch.log(self.weights)
+    return self._log_weights
+
+
+def _set_log_weights(self: SmootherOutput, value: Tensor | None) -> None:
+    self._log_weights = value
+
+
+# Installed after the dataclass is made, so that ``log_weights`` stays its first field (positional
+# and keyword construction, ``dataclasses.replace``) while reading it takes the log of ``weights``
+# when only those were given.
+SmootherOutput.log_weights = property(
+    _lazy_log_weights, _set_log_weights, doc="Log marginal smoothing weights ``(T, B, L)``."
+)
 
 
 def _chunks(n: int, size: int):
