@@ -99,7 +99,7 @@ def systematic(log_weights: Tensor, n: int | None = None, generator: _random.Ran
     return systematic_from_cumsum(torch.cumsum(torch.softmax(log_weights, dim=-1), dim=-1), u, n)
 
 
-#: :func:`systematic_from_cumsum` binary-searches the positions while ``rows * n * log2(L)``
+#: :class:`SystematicResampler` binary-searches the positions while ``rows * n * log2(L)``
 #: is below this and scatters otherwise.  Measured on one CPU thread with fresh weights at every
 #: call (the search's branches are then unpredictable; repeating one input flatters it 3-4x): the
 #: search is faster for one row of up to ~300 particles (10 vs 18 us), 2x slower for 1000.
@@ -107,26 +107,19 @@ SEARCH_WORK = 4000
 
 
 def systematic_grid(B: int, n: int, dtype: torch.dtype, device: torch.device | str | None = None) -> Tensor:
-    """The integers ``1, ..., n`` that :func:`systematic_from_cumsum` searches for, shape ``(B, n)``."""
+    """The integers ``1, ..., n`` that :class:`SystematicResampler` searches for, shape ``(B, n)``."""
     return torch.arange(1, n + 1, dtype=dtype, device=device).expand(B, n).contiguous()
 
 
 def systematic_from_cumsum(
-    cumw: Tensor,
-    u: Tensor,
-    n: int | None = None,
-    *,
-    out: Tensor | None = None,
-    grid: Tensor | None = None,
-    ones: Tensor | None = None,
+    cumw: Tensor, u: Tensor, n: int | None = None, *, out: Tensor | None = None
 ) -> Tensor:
     """Systematic resampling from cumulative sums of (unnormalised, non-negative) weights.
 
     Position ``j = 0, ..., n - 1`` is ``p_j = (j + 1 - u) / n`` (the offset ``1 - u`` is uniform
     on ``(0, 1]``, which saves computing ``1 - u``) and goes to the particle ``i`` with ``cdf_{i-1}
-    <= p_j < cdf_i``, ``cdf = cumw / cumw[:, -1]``; the indices come sorted.  Few operations per
-    call: the particle filter calls it at every time step, where per-operation overhead dominates
-    for one sequence.
+    <= p_j < cdf_i``, ``cdf = cumw / cumw[:, -1]``; the indices come sorted.  One call of a
+    :class:`SystematicResampler` (which the particle filter keeps for all its steps).
 
     Parameters
     ----------
@@ -138,11 +131,6 @@ def systematic_from_cumsum(
         Number of draws (default ``L``).
     out : Tensor, shape (B, n), long, optional
         Where to write the indices.
-    grid : Tensor, optional
-        :func:`systematic_grid` ``(B, n)`` (made here if omitted); callers that resample many times
-        pass it to save its construction.
-    ones : Tensor, shape (B, L - 1), long, optional
-        ``torch.ones`` (made here if omitted and needed), likewise.
 
     Returns
     -------
@@ -150,36 +138,20 @@ def systematic_from_cumsum(
         Ancestor indices in ``[0, L)``.
     """
     B, L = cumw.shape
-    n = L if n is None else n
-    inv_total = torch.reciprocal(cumw[:, -1:])
-    if B * n * math.log2(max(L, 2)) < SEARCH_WORK:
-        # index of position j = #{i: cdf_i <= p_j} = #{i: n cdf_i + u <= j + 1}; positions past the
-        # end (rounding) go to L - 1
-        if grid is None:
-            grid = systematic_grid(B, n, cumw.dtype, cumw.device)
-        idx = torch.searchsorted(torch.addcmul(u, cumw, inv_total, value=n), grid, right=True, out=out)
-        return idx.clamp_(max=L - 1)
-    # particle i gets below_i - below_{i-1} positions, below_i = #{j: p_j < cdf_i} = floor(n cdf_i +
-    # u) (the conversion truncates, and n cdf + u >= 0): mark each below_i (i < L - 1) and count the
-    # marks up to j (one scatter and one cumulative sum).  The clamp also maps NaN weights
-    # (undefined integer conversion) to a valid index.
-    below = torch.addcmul(u, cumw[:, :-1], inv_total, value=n).long().clamp_(0, n)
-    if ones is None:
-        ones = torch.ones(B, L - 1, dtype=torch.long, device=cumw.device)
-    marks = torch.zeros(B, n + 1, dtype=torch.long, device=cumw.device)
-    marks.scatter_add_(1, below, ones)
-    return torch.cumsum(marks[:, :n], dim=1, out=out)
+    resampler = SystematicResampler(B, L, cumw.dtype, cumw.device, n=n)
+    resampler.cumw.copy_(cumw)
+    return resampler.from_cumsum(u, out)
 
 
 class SystematicResampler:
-    """:func:`systematic_from_cumsum` of ``B`` rows of ``L`` weights, ``n = L`` draws, called many times
-    (the particle filter's every step) with its work arrays and their views made once.
+    """Systematic resampling of ``B`` rows of ``L`` weights into ``n`` draws (default ``L``),
+    called many times (the particle filter's every step) with its work arrays and their views made
+    once: about six operations fewer per call than making them each time (three slices, three
+    allocations; measured at one sequence, where each costs ~0.5-1 us of dispatch).
 
-    Each call takes the weights themselves (it writes their cumulative sums into its own array) and
-    returns exactly what ``systematic_from_cumsum(torch.cumsum(weights, -1), u, out=out)`` returns,
-    with about six operations fewer per call (three slices, three allocations; measured at one
-    sequence, where each costs ~0.5-1 us of dispatch).  The returned indices are ``out`` or, without
-    it, an array of the resampler's own that the next call overwrites.
+    A call takes the weights themselves (it writes their cumulative sums into its own array
+    ``cumw``; :meth:`from_cumsum` starts from sums already there) and returns the indices in
+    ``out`` or, without it, in an array of the resampler's own that the next call overwrites.
 
     Parameters
     ----------
@@ -188,34 +160,55 @@ class SystematicResampler:
     dtype : torch.dtype
         Dtype of the weights.
     device : torch.device or str, optional
+    n : int, optional
+        Draws per row (default ``L``).
     """
 
-    def __init__(self, B: int, L: int, dtype: torch.dtype, device: torch.device | str | None = None):
-        self.L = L
+    def __init__(
+        self,
+        B: int,
+        L: int,
+        dtype: torch.dtype,
+        device: torch.device | str | None = None,
+        n: int | None = None,
+    ):
+        n = L if n is None else n
+        self.L, self.n = L, n
         self.cumw = torch.empty(B, L, dtype=dtype, device=device)
         self._total = self.cumw[:, -1:]
-        self.search = B * L * math.log2(max(L, 2)) < SEARCH_WORK
-        self._own = torch.empty(B, L, dtype=torch.long, device=device)
+        self.search = B * n * math.log2(max(L, 2)) < SEARCH_WORK
+        self._own = torch.empty(B, n, dtype=torch.long, device=device)
         if self.search:
-            self._grid = systematic_grid(B, L, dtype, device)
+            self._grid = systematic_grid(B, n, dtype, device)
         else:
             self._head = self.cumw[:, :-1]
             self._ones = torch.ones(B, L - 1, dtype=torch.long, device=device)
             self._below = torch.empty(B, L - 1, dtype=torch.long, device=device)
-            self._marks = torch.empty(B, L + 1, dtype=torch.long, device=device)
-            self._counted = self._marks[:, :L]
+            self._marks = torch.empty(B, n + 1, dtype=torch.long, device=device)
+            self._counted = self._marks[:, :n]
 
     def __call__(self, weights: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
-        """Ancestor indices ``(B, L)`` for non-negative ``weights`` ``(B, L)`` and one uniform per row
+        """Ancestor indices ``(B, n)`` for non-negative ``weights`` ``(B, L)`` and one uniform per row
         ``u`` ``(B, 1)`` (into ``out`` if given)."""
-        L, out = self.L, self._own if out is None else out
         torch.cumsum(weights, dim=-1, out=self.cumw)
+        return self.from_cumsum(u, out)
+
+    def from_cumsum(self, u: Tensor, out: Tensor | None = None) -> Tensor:
+        """Ancestor indices ``(B, n)`` from the cumulative sums in ``cumw`` (see
+        :func:`systematic_from_cumsum`)."""
+        L, n, out = self.L, self.n, self._own if out is None else out
         inv_total = torch.reciprocal(self._total)
         if self.search:
-            positions = torch.addcmul(u, self.cumw, inv_total, value=L)
+            # index of position j = #{i: cdf_i <= p_j} = #{i: n cdf_i + u <= j + 1}; positions past
+            # the end (rounding) go to L - 1
+            positions = torch.addcmul(u, self.cumw, inv_total, value=n)
             idx = torch.searchsorted(positions, self._grid, right=True, out=out)
             return idx.clamp_(max=L - 1)
-        below = self._below.copy_(torch.addcmul(u, self._head, inv_total, value=L)).clamp_(0, L)  # as .long()
+        # particle i gets below_i - below_{i-1} positions, below_i = #{j: p_j < cdf_i} = floor(n
+        # cdf_i + u) (the conversion truncates, and n cdf + u >= 0): mark each below_i (i < L - 1)
+        # and count the marks up to j (one scatter and one cumulative sum).  The clamp also maps NaN
+        # weights (undefined integer conversion) to a valid index.
+        below = self._below.copy_(torch.addcmul(u, self._head, inv_total, value=n)).clamp_(0, n)  # as .long()
         self._marks.zero_()
         self._marks.scatter_add_(1, below, self._ones)
         return torch.cumsum(self._counted, dim=1, out=out)
