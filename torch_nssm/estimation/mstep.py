@@ -314,18 +314,14 @@ def transition_regression(Rw: Tensor, data: SequenceBatch, est: EStepOutput) -> 
 
 
 def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice], Tensor]:
-    """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed: the smoother's
-    ``weights`` where it has them (a view: not to be modified in place), else ``exp`` of its
-    log-weights."""
+    """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed
+    (:meth:`~torch_nssm.inference.smoothing.SmootherOutput.weights_of`: possibly a view, not to be
+    modified in place)."""
     observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
-    sm = est.smoother
-    ws = sm.weights
-    log_ws = sm.log_weights if ws is None else None  # (read only without weights: it may be computed)
+    weights_of = est.smoother.weights_of
     if bool(observed.all()):
-        return (lambda sl: ws[sl]) if ws is not None else (lambda sl: torch.exp(log_ws[sl]))
-    if ws is not None:
-        return lambda sl: ws[sl] * observed[sl]
-    return lambda sl: torch.exp(log_ws[sl]).mul_(observed[sl])
+        return weights_of
+    return lambda sl: weights_of(sl) * observed[sl]
 
 
 def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:
@@ -400,7 +396,7 @@ def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -
     """
     sm = est.smoother
     X0 = est.filter.particles[0]  # (B, L, nx)
-    w0 = torch.exp(sm.log_weights[0]) if sm.weights is None else sm.weights[0]  # (B, L)
+    w0 = sm.weights_of(0)  # (B, L)
     if est.windows is not None:  # windows of long records: those that start a record
         X0, w0 = X0[est.windows.first], w0[est.windows.first]
     B = X0.shape[0]

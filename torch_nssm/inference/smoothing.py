@@ -87,6 +87,12 @@ class SmootherOutput:
     residual_scatter: Tensor
     weights: Tensor | None = None
 
+    def weights_of(self, index) -> Tensor:
+        """``W_{k|N}`` of the steps ``index`` (an int or a slice): ``weights[index]`` where the
+        smoother has them (a view: not to be modified in place), else ``exp`` of the log-weights
+        (so that reading the weights never computes the lazy log-weights of every step)."""
+        return self.weights[index] if self.weights is not None else torch.exp(self.log_weights[index])
+
     def select(self, index) -> SmootherOutput:
         """The smoother output of the sequences ``index``."""
         return SmootherOutput(

@@ -117,8 +117,7 @@ class Windows:
         scatter = torch.zeros(W, nx, nx, dtype=particles.dtype, device=particles.device)
         for blk in time_blocks(Tw - 1, W * L):
             nxt = slice(blk.start + 1, blk.stop + 1)
-            # the weights where the smoother has them (reading log_weights could compute them all)
-            w = torch.exp(smoother.log_weights[nxt]) if smoother.weights is None else smoother.weights[nxt]
+            w = smoother.weights_of(nxt)
             w = torch.where(w < TINY_WEIGHT, 0.0, w).unsqueeze(-1)  # (t, W, L, 1)
             x = particles[nxt]
             c = (w * x).sum(-2, keepdim=True) / w.sum(-2, keepdim=True).clamp_min(TINY_WEIGHT)
