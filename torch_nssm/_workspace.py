@@ -39,13 +39,16 @@ def _key(shape, dtype: torch.dtype, device) -> tuple:
 
 def empty(shape, dtype: torch.dtype, device) -> Tensor:
     """An uninitialised tensor: a recycled one of the same shape, dtype and device if
-    :func:`recycling` offers one, else ``torch.empty``."""
+    :func:`recycling` offers one, else ``torch.empty``.  Always an ordinary tensor, also when
+    called in inference mode (where the per-step loops run): what it makes are outputs, which
+    autograd may meet later (the M-step's objectives)."""
     free = _active.get()
     if free:
         stack = free.get(_key(shape, dtype, device))
         if stack:
             return stack.pop()
-    return torch.empty(shape, dtype=dtype, device=device)
+    with torch.inference_mode(False):
+        return torch.empty(shape, dtype=dtype, device=device)
 
 
 @contextmanager

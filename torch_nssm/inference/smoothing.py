@@ -514,6 +514,7 @@ def ffbsi(
 _UNIFORM_DTYPE = torch.float32
 
 
+@torch.inference_mode()  # writes only into ``Js``: see particle_filter's loop
 def _mcmc_block(
     Js: Tensor,
     blk: slice,
@@ -696,6 +697,7 @@ class _TrajectoryStatistics:
         self.one = torch.ones((1, 1, 1), dtype=dtype, device=device)
         self.parts: list[tuple[int, Tensor]] = []
 
+    @torch.inference_mode()  # writes into the outputs (made outside it) and keeps a sum
     def add(self, sl: slice, J: Tensor, J_next: Tensor) -> None:
         """The statistics of the steps ``sl`` from their indices ``J`` ``(t, B, M)`` and those of
         the steps ``sl.start + 1 ... sl.stop`` (``J_next``)."""
