@@ -207,15 +207,16 @@ def particle_filter(
         _process_noise(model, L, generator, particles[1:], lengths)  # x_k = f(.) + noise, added in place
     always = ess_threshold >= 1.0
     resampled = None if always else torch.zeros(T, B, dtype=torch.bool, device=device)
-    # Per-step terms: max logit ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the
-    # log-likelihood, the normalisation of the stored log-weights and the ESS follow after the loop.
-    # Resampling at every step, the next step's systematic resampler sums ``exp(logit - m)``
-    # (its cumulative sum) and writes ``1 / s`` into ``inv_all``: one operation a step fewer.
+    # Per-step terms, (B, 1) each, collected in lists and stacked after the loop (no per-step
+    # views of (T, B, 1) arrays to write into: a view costs as much as a small operation): max logit
+    # ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the log-likelihood, the normalisation
+    # of the stored log-weights and the ESS follow after the loop.  Resampling at every step, the
+    # next step's systematic resampler sums ``exp(logit - m)`` (its cumulative sum) and gives
+    # ``1 / s``: one operation a step fewer.
     inv_s = always and fast_systematic and T > 1
-    m_all = torch.empty(T, B, 1, dtype=dtype, device=device)
-    s_all = torch.empty(T, B, 1, dtype=dtype, device=device)
-    inv_all = torch.empty(T, B, 1, dtype=dtype, device=device) if inv_s else s_all
-    norm_all = torch.empty(T, B, 1, dtype=dtype, device=device)
+    ms: list[Tensor] = []
+    ss: list[Tensor] = []  # s, or with ``inv_s`` 1 / s (from the resampler) and s at the last step
+    norms: list[Tensor] = []
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density (and arrays)
     # The steps write into the outputs made above (``out=``, in place) and run in inference mode:
     # no autograd bookkeeping on their ~20 operations and ~10 views a step (measured 5-8 % of a
@@ -247,7 +248,6 @@ def particle_filter(
             parents_2d, X_2d = parents[..., 0], particles[..., 0].unbind(0)
         else:
             A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
-        M, S, NORM, INV = m_all.unbind(0), s_all.unbind(0), norm_all.unbind(0), inv_all.unbind(0)
         f, g = _frozen(model.f), _frozen(model.g)
         U_f, U_g = _step_inputs(f, data.u, L), _step_inputs(g, data.u, L)
         log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
@@ -258,15 +258,16 @@ def particle_filter(
             x = X[k]
             if k > 0:
                 if fast_systematic:  # straight into ``ancestors`` when resampling at every step
-                    inv = INV[k - 1] if inv_s else None
-                    anc = resample_systematic(e, uniforms[k - 1], out=A[k] if always else None, inv_total=inv)
+                    anc = resample_systematic(e, uniforms[k - 1], out=A[k] if always else None)
+                    if inv_s:
+                        ss.append(resample_systematic.inv_total)
                 else:  # the schemes normalise (softmax): the stored logit - m will do
                     gen = generator if streams is None else streams.at_step([k < n for n in lengths])
                     anc = resample(LW[k - 1] if always else log_w, generator=gen)
                 if always and not fast_systematic:
                     A[k].copy_(anc)
                 elif not always:
-                    ess_prev = (S[k - 1] / NORM[k - 1]).square_()
+                    ess_prev = (ss[k - 1] / norms[k - 1]).square_()
                     do = ess_prev < ess_threshold * L  # (B, 1)
                     resampled[k] = do[:, 0]
                     torch.where(do, anc, arange, out=A[k])
@@ -284,16 +285,19 @@ def particle_filter(
             logits = density.step(k, z)
             if not always:
                 logits = logits.add_(log_w)
-            m = torch.amax(logits, dim=-1, keepdim=True, out=M[k])
+            m = torch.amax(logits, dim=-1, keepdim=True)
+            ms.append(m)
             z = torch.sub(logits, m, out=LW[k])
             e = torch.exp(z, out=e_buffer)
             if not inv_s or k == T - 1:
-                s = torch.sum(e, dim=-1, keepdim=True, out=S[k])
-            torch.linalg.vector_norm(e, dim=-1, keepdim=True, out=NORM[k])
+                s = torch.sum(e, dim=-1, keepdim=True)
+                ss.append(s)
+            norms.append(torch.linalg.vector_norm(e, dim=-1, keepdim=True))
             if not always:
                 log_w = z - torch.log(s)
+    m_all, s_all, norm_all = torch.stack(ms), torch.stack(ss), torch.stack(norms)  # (T, B, 1)
     if inv_s:
-        torch.reciprocal(inv_all[:-1], out=s_all[:-1])
+        s_all[:-1].reciprocal_()
     log_s = torch.log(s_all)
     log_weights.sub_(log_s)
     ess = (s_all / norm_all).square_().squeeze(-1)

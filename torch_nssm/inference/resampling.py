@@ -187,21 +187,19 @@ class SystematicResampler:
             self._marks = torch.empty(B, n + 1, dtype=torch.long, device=device)
             self._counted = self._marks[:, :n]
 
-    def __call__(
-        self, weights: Tensor, u: Tensor, out: Tensor | None = None, inv_total: Tensor | None = None
-    ) -> Tensor:
+    def __call__(self, weights: Tensor, u: Tensor, out: Tensor | None = None) -> Tensor:
         """Ancestor indices ``(B, n)`` for non-negative ``weights`` ``(B, L)`` and one uniform per row
-        ``u`` ``(B, 1)`` (into ``out`` if given).  ``inv_total`` ``(B, 1)``: where to write the
-        reciprocals of the rows' totals, which the call computes anyway (the particle filter's
-        likelihood terms take them instead of summing the weights again)."""
+        ``u`` ``(B, 1)`` (into ``out`` if given).  The reciprocals of the rows' totals, which a call
+        computes anyway, are left in :attr:`inv_total` (the particle filter's likelihood terms take
+        them instead of summing the weights again)."""
         torch.cumsum(weights, dim=-1, out=self.cumw)
-        return self.from_cumsum(u, out, inv_total)
+        return self.from_cumsum(u, out)
 
-    def from_cumsum(self, u: Tensor, out: Tensor | None = None, inv_total: Tensor | None = None) -> Tensor:
+    def from_cumsum(self, u: Tensor, out: Tensor | None = None) -> Tensor:
         """Ancestor indices ``(B, n)`` from the cumulative sums in ``cumw`` (see
         :func:`systematic_from_cumsum`)."""
         L, n, out = self.L, self.n, self._own if out is None else out
-        inv_total = torch.reciprocal(self._total, out=inv_total)
+        self.inv_total = inv_total = torch.reciprocal(self._total)  # (B, 1), a new tensor each call
         if self.search:
             # index of position j = #{i: cdf_i <= p_j} = #{i: n cdf_i + u <= j + 1}; positions past
             # the end (rounding) go to L - 1

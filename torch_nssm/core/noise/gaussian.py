@@ -15,7 +15,8 @@ __all__ = ["GaussianNoise"]
 
 class _GaussianEvaluator(SquaredNormEvaluator):
     def step(self, k: int, z: Tensor) -> Tensor:
-        return torch.mul(self.squared_norm(k, z), -0.5, out=self._logits)
+        torch.mul(self.squared_norm(k, z), -0.5, out=self._logits_col)
+        return self._logits
 
 
 @dataclass(frozen=True)

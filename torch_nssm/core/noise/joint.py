@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ... import _workspace
-from ..._ops import small_matmul, squared_norm
+from ..._ops import small_matmul
 from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, symmetric_pd
 
 __all__ = ["JointScaleNoise", "SquaredNormEvaluator"]
@@ -22,17 +22,17 @@ class SquaredNormEvaluator(NoiseEvaluator):
         T, B = const.shape
         self.const = const
         self.statistics = _workspace.empty((T, B, n_particles), const.dtype, const.device)
-        # views of every step, made once (indexing a list is free, a tensor select is an operation)
-        self._delta2 = self.statistics.unbind(0)
-        self._delta2_col = self.statistics.unsqueeze(-1).unbind(0)
+        # views of every step, made once (indexing a list is free, a tensor select costs ~0.4 us,
+        # as much as a small operation), shaped (B, L, 1) like the residuals: one set of views
+        self._delta2 = self.statistics.unsqueeze(-1).unbind(0)
         self._logits = torch.empty(B, n_particles, dtype=const.dtype, device=const.device)  # step's result
+        self._logits_col = self._logits.unsqueeze(-1)  # written through this (B, L, 1) view
 
     def squared_norm(self, k: int, z: Tensor) -> Tensor:
+        """``|z|^2`` of the residuals ``z`` ``(B, L, p)`` of step ``k``, recorded: ``(B, L, 1)``."""
         if z.shape[-1] == 1:
-            torch.mul(z, z, out=self._delta2_col[k])
-        else:
-            self._delta2[k].copy_(squared_norm(z))
-        return self._delta2[k]
+            return torch.mul(z, z, out=self._delta2[k])
+        return torch.sum(z * z, dim=-1, keepdim=True, out=self._delta2[k])
 
 
 @dataclass(frozen=True)

@@ -150,12 +150,13 @@ class _StudentTEvaluator(SquaredNormEvaluator):
         else:
             const = student_t_log_prob(torch.zeros_like(logdet), logdet, n_obs, dof)
         super().__init__(const, n_particles)
-        self._neg_coef = step_views((-0.5 * (dof + scale.n_obs)).unsqueeze(-1))  # (B, 1) per step
-        self._inv_nu = step_views((1.0 / dof).expand_as(const).unsqueeze(-1))
+        self._neg_coef = step_views((-0.5 * (dof + scale.n_obs))[..., None, None])  # (B, 1, 1) per step
+        self._inv_nu = step_views((1.0 / dof).expand_as(const)[..., None, None])
 
     def step(self, k: int, z: Tensor) -> Tensor:
-        delta2 = self.squared_norm(k, z)
-        return torch.log1p_(torch.mul(delta2, self._inv_nu[k], out=self._logits)).mul_(self._neg_coef[k])
+        delta2 = self.squared_norm(k, z)  # (B, L, 1)
+        torch.log1p_(torch.mul(delta2, self._inv_nu[k], out=self._logits_col)).mul_(self._neg_coef[k])
+        return self._logits
 
 
 @dataclass(frozen=True)
