@@ -84,8 +84,12 @@ class FilterOutput:
         )
 
 
-def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: Tensor, lengths=None) -> None:
-    """All process-noise draws ``w ~ N(0, Rw)`` at once into ``out`` ``(T - 1, B, L, nx)``.
+def _process_noise(
+    model: StateSpaceModel, L: int, generator: Randomness, out: Tensor, lengths=None
+) -> Tensor | None:
+    """All process-noise draws ``w ~ N(0, Rw)`` at once into ``out`` ``(T - 1, B, L, nx)``; with one
+    state, the standard normals and their scale ``sqrt(Rw)`` ``(B,)`` returned (the filter's step
+    applies it in the multiply-add it makes anyway: one pass over the array fewer).
 
     Standard normals are drawn in single precision (2x faster than double on CPU; the 24-bit draws
     are more than enough for Monte Carlo noise) and shaped by ``chol(Rw)`` elementwise (tiny
@@ -97,20 +101,20 @@ def _process_noise(model: StateSpaceModel, L: int, generator: Randomness, out: T
     noise_dtype = torch.float32 if out.dtype == torch.float64 else out.dtype
     if isinstance(generator, SequenceStreams):
         limits = [int(n) - 1 for n in lengths]
-        if nx == 1:  # each sequence's draws through one small buffer, widened and scaled into ``out``: no
+        if nx == 1:  # each sequence's draws through one small buffer, widened into ``out``: no
             # (T - 1, B, L) single-precision array (its first-touch page faults, ~10,000 per E-step
             # at the Table 1 size, cost more than the copies)
-            generator.normal_steps_into(out, limits, noise_dtype, scale=Cw.reshape(B))
-            return
+            generator.normal_steps_into(out, limits, noise_dtype)
+            return Cw.reshape(B)
         noise = generator.steps(0, T1, limits, tuple(out.shape[2:]), noise_dtype, normal=True, fill=0.0)
         noise = noise.transpose(0, 1)
     else:
         noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
-    if nx == 1:  # widened first: a product with a float32 (strided) operand was 4x slower (39 vs 11 ms
-        out.copy_(noise)  # at T = 1000, B = L = 100, one CPU thread)
-        out.mul_(Cw.view(B, 1, 1))
-    else:
-        torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
+    if nx == 1:  # widened (a product with a float32 (strided) operand was 4x slower: 39 vs 11 ms at
+        out.copy_(noise)  # T = 1000, B = L = 100, one CPU thread)
+        return Cw.reshape(B)
+    torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
+    return None
 
 
 def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
@@ -203,8 +207,9 @@ def particle_filter(
     particles[0] = x0
     arange = torch.arange(L, device=device).expand(B, L)
     ancestors[0] = arange
-    if T > 1:
-        _process_noise(model, L, generator, particles[1:], lengths)  # x_k = f(.) + noise, added in place
+    noise_scale = None  # one state: sqrt(Rw) per sequence, applied in the step
+    if T > 1:  # x_k = f(.) + noise, added in place
+        noise_scale = _process_noise(model, L, generator, particles[1:], lengths)
     always = ess_threshold >= 1.0
     resampled = None if always else torch.zeros(T, B, dtype=torch.bool, device=device)
     # Per-step terms, (B, 1) each, collected in lists and stacked after the loop (no per-step
@@ -246,6 +251,8 @@ def particle_filter(
             # gathering (B, L, 1) rows with an expanded index
             parents = torch.empty(B, L, 1, dtype=dtype, device=device)
             parents_2d, X_2d = parents[..., 0], particles[..., 0].unbind(0)
+            if noise_scale is not None:  # expanded to the particles: addcmul's vectorised loop
+                noise_scale = noise_scale.view(B, 1, 1).expand(B, L, 1).contiguous()
         else:
             A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
         f, g = _frozen(model.f), _frozen(model.g)
@@ -274,7 +281,7 @@ def particle_filter(
                     log_w = torch.where(do, log_uniform, log_w)
                 if nx == 1:
                     torch.gather(X_2d[k - 1], 1, A[k], out=parents_2d)
-                    x.add_(f(parents, U_f[k - 1]))
+                    torch.addcmul(f(parents, U_f[k - 1]), x, noise_scale, out=x)  # f + sqrt(Rw) eps
                 else:
                     x.add_(f(torch.gather(X[k - 1], 1, A_gather[k]), U_f[k - 1]))
             gx = g(x, U_g[k])
