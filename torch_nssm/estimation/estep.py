@@ -279,7 +279,7 @@ def to_records(est: EStepOutput, model: StateSpaceModel, data: SequenceBatch) ->
         g(filt.particles),
         g(filt.log_weights),
         windows.to_records(filt.log_likelihood),
-        g(filt.ess),
+        None if filt._ess is None else g(filt._ess),  # (lazy: from the log-weights when read)
         scale,
         g(filt.ancestors),
         None,

@@ -41,7 +41,9 @@ class FilterOutput:
     log_likelihood : Tensor, shape (B,)
         Particle estimate of ``log p(y_{0:T_b-1})`` of each sequence.
     ess : Tensor, shape (T, B)
-        Effective sample size of the filter weights at each step.
+        Effective sample size of the filter weights at each step.  Where the filter gives
+        ``None`` (resampling at every step, where nothing in the pass needs it) it is taken from
+        ``log_weights`` when first read.
     scale : MaskedScale
         The measurement-noise scale restricted to the observed components, per ``(T, B)``.
     ancestors : Tensor, shape (T, B, L), long
@@ -75,7 +77,7 @@ class FilterOutput:
             self.particles[:, index],
             self.log_weights[:, index],
             self.log_likelihood[index],
-            self.ess[:, index],
+            None if self._ess is None else self._ess[:, index],
             self.scale.select(index),
             self.ancestors[:, index],
             None if self.noise_statistics is None else self.noise_statistics[:, index],
@@ -115,6 +117,21 @@ def _process_noise(
         return Cw.reshape(B)
     torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T
     return None
+
+
+def _lazy_ess(self: FilterOutput) -> Tensor:
+    if self._ess is None:
+        self._ess = torch.exp(-torch.logsumexp(2.0 * self.log_weights, dim=-1))  # 1 / sum W^2
+    return self._ess
+
+
+def _set_ess(self: FilterOutput, value: Tensor | None) -> None:
+    self._ess = value
+
+
+# Installed after the dataclass is made, so that ``ess`` stays its field (positional and keyword
+# construction, ``dataclasses.replace``) while reading it computes it where it was not given.
+FilterOutput.ess = property(_lazy_ess, _set_ess, doc="Effective sample size ``(T, B)``.")
 
 
 def _frozen(module: nn.Module) -> Callable[[Tensor, Tensor], Tensor]:
@@ -221,7 +238,7 @@ def particle_filter(
     inv_s = always and fast_systematic and T > 1
     ms: list[Tensor] = []
     ss: list[Tensor] = []  # s, or with ``inv_s`` 1 / s (from the resampler) and s at the last step
-    norms: list[Tensor] = []
+    norms: list[Tensor] = []  # ``||exp(logit - m)||``: the ESS, where not resampling at every step
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density (and arrays)
     # The steps write into the outputs made above (``out=``, in place) and run in inference mode:
     # no autograd bookkeeping on their ~20 operations and ~10 views a step (measured 5-8 % of a
@@ -299,15 +316,17 @@ def particle_filter(
             if not inv_s or k == T - 1:
                 s = torch.sum(e, dim=-1, keepdim=True)
                 ss.append(s)
-            norms.append(torch.linalg.vector_norm(e, dim=-1, keepdim=True))
+            if not always:
+                norms.append(torch.linalg.vector_norm(e, dim=-1, keepdim=True))
             if not always:
                 log_w = z - torch.log(s)
-    m_all, s_all, norm_all = torch.stack(ms), torch.stack(ss), torch.stack(norms)  # (T, B, 1)
+    m_all, s_all = torch.stack(ms), torch.stack(ss)  # (T, B, 1)
     if inv_s:
         s_all[:-1].reciprocal_()
     log_s = torch.log(s_all)
     log_weights.sub_(log_s)
-    ess = (s_all / norm_all).square_().squeeze(-1)
+    # the ESS from the loop's terms where it needed them, else when first read (FilterOutput.ess)
+    ess = None if always else (s_all / torch.stack(norms)).square_().squeeze(-1)
     # log p(y_k | y_<k) = const_k + log sum_l W_{k-1,l} exp(logit_kl) = const_k + m_k + log s_k
     # (- log L when the previous weights are uniform after resampling at every step)
     steps = density.const + (m_all + log_s).squeeze(-1)  # (T, B)
