@@ -19,7 +19,7 @@ class _GaussianEvaluator(SquaredNormEvaluator):
     log-density is then one multiply-add a step instead of two operations."""
 
     def __init__(self, const: Tensor, n_particles: int):
-        super().__init__(const, n_particles)
+        super().__init__(const, n_particles, records=False)
         self._zero = torch.zeros((), dtype=const.dtype, device=const.device)
 
     def step(self, k: int, z: Tensor) -> Tensor:
