@@ -193,31 +193,33 @@ def ffbsm(
     centres = torch.empty(T - 1, B, 1, nx, dtype=dtype, device=device)
     entries = B * L * (L * min(T - 1, max(1, KERNEL_BLOCK // (B * L * L))) if whole else rows)
     workspace = torch.empty(entries, dtype=kdtype, device=device)  # every block's E, reused
-    for blk in reversed(list(time_blocks(T - 1, B * L * L if whole else KERNEL_BLOCK, KERNEL_BLOCK))):
-        zf, zx, centre = _whitened_steps(model, data, X, logW, Cinv_t, blk)
-        centres[blk] = centre
-        a = logW[blk] - 0.5 * squared_norm(zf)  # (t, B, L)
-        # rows [w_j, w_j (x_j - c)^T]: one product with the kernel gives s and m together, and
-        # multiplying from the left reads K in its stored layout (no transposed copy)
-        dx = (X[blk.start + 1 : blk.stop + 1] - centre).to(kdtype).transpose(-1, -2)  # (t, B, nx, L)
-        if whole:
-            K, inv_d = _backward_kernels(a, zf, zx, logW[blk], kdtype, workspace)  # (t, B, L, L), (t, B, L)
-        for k in range(blk.stop - 1, blk.start - 1, -1):
-            i = k - blk.start
-            w = torch.exp(log_ws[k + 1])
-            w = torch.where(w < TINY_WEIGHT, 0.0, w).to(kdtype).unsqueeze(1)  # (B, 1, L)
-            wx = torch.cat([w, w * dx[i]], 1)  # (B, 1 + nx, L)
+    with torch.inference_mode():  # writes only into ``centres``, ``sm_all`` and ``log_ws``
+        for blk in reversed(list(time_blocks(T - 1, B * L * L if whole else KERNEL_BLOCK, KERNEL_BLOCK))):
+            zf, zx, centre = _whitened_steps(model, data, X, logW, Cinv_t, blk)
+            centres[blk] = centre
+            a = logW[blk] - 0.5 * squared_norm(zf)  # (t, B, L)
+            # rows [w_j, w_j (x_j - c)^T]: one product with the kernel gives s and m together, and
+            # multiplying from the left reads K in its stored layout (no transposed copy)
+            dx = (X[blk.start + 1 : blk.stop + 1] - centre).to(kdtype).transpose(-1, -2)  # (t, B, nx, L)
             if whole:
-                torch.bmm(wx * inv_d[i].unsqueeze(1), K[i], out=sm_all[k])
-            else:
-                sm = torch.zeros(B, 1 + nx, L, dtype=kdtype, device=device)
-                for sl in _chunks(L, rows):
-                    Kc, inv_dc = _backward_kernels(a[i], zf[i], zx[i][:, sl], logW[k], kdtype, workspace)
-                    sm = torch.baddbmm(sm, wx[:, :, sl] * inv_dc.unsqueeze(1), Kc)
-                sm_all[k] = sm
-            log_s = torch.log(sm_all[k, :, 0].to(dtype))
-            log_s = log_s - torch.logsumexp(log_s, dim=-1, keepdim=True)  # guard rounding drift
-            log_ws[k] = torch.where(trans[k].unsqueeze(-1), log_s, logW[k])
+                # (t, B, L, L), (t, B, L)
+                K, inv_d = _backward_kernels(a, zf, zx, logW[blk], kdtype, workspace)
+            for k in range(blk.stop - 1, blk.start - 1, -1):
+                i = k - blk.start
+                w = torch.exp(log_ws[k + 1])
+                w = torch.where(w < TINY_WEIGHT, 0.0, w).to(kdtype).unsqueeze(1)  # (B, 1, L)
+                wx = torch.cat([w, w * dx[i]], 1)  # (B, 1 + nx, L)
+                if whole:
+                    torch.bmm(wx * inv_d[i].unsqueeze(1), K[i], out=sm_all[k])
+                else:
+                    sm = torch.zeros(B, 1 + nx, L, dtype=kdtype, device=device)
+                    for sl in _chunks(L, rows):
+                        Kc, inv_dc = _backward_kernels(a[i], zf[i], zx[i][:, sl], logW[k], kdtype, workspace)
+                        sm = torch.baddbmm(sm, wx[:, :, sl] * inv_dc.unsqueeze(1), Kc)
+                    sm_all[k] = sm
+                log_s = torch.log(sm_all[k, :, 0].to(dtype))
+                log_s = log_s - torch.logsumexp(log_s, dim=-1, keepdim=True)  # guard rounding drift
+                log_ws[k] = torch.where(trans[k].unsqueeze(-1), log_s, logW[k])
     return _pairwise_statistics(data, X, log_ws, sm_all, centres)
 
 
@@ -464,45 +466,46 @@ def ffbsi(
         Js[-1] = J_last
         limits = [n - 1 for n in data.lengths.tolist()]  # steps with a transition
         n_mcmc, n_reject = M * mcmc_steps, (2 * max_tries + 1) * M
-    for blk in reversed(blocks):
-        t = blk.stop - blk.start
-        if rolling:  # row i: step blk.start + i; the last row is the later block's first
-            if t < size or blk.stop < T - 1:
-                Js[t] = Js[0] if blk.stop < T - 1 else Js[-1]
-            Jb = Js[: t + 1]
-        else:
-            Jb = Js[blk.start : blk.stop + 1]
-        zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
-        if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
-            n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
-            kind = _UNIFORM_DTYPE if method == "mcmc" else dtype
-            draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), kind, reverse=True)
-        if method == "mcmc":
-            pre = (draws, J_last) if streams is not None else (None, None)
-            A, kept = filt.ancestors, filt.resampled
-            _mcmc_block(Jb, blk, zf, zx, A, kept, logW, trans, all_valid, mcmc_steps, generator, *pre)
-        else:
-            cdfs = cumulative_weights(logW[blk])  # (t, B, L)
-            for k in range(blk.stop - 1, blk.start - 1, -1):
-                i = k - blk.start
-                J_next = Jb[i + 1]
-                if nx == 1:
-                    x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (B, M, 1)
-                else:
-                    x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
-                pre = None if streams is None else draws[:, blk.stop - 1 - k]
-                J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
-                if not all_valid[k]:
-                    # Rows past a sequence's end restart from the filter (their transitions are masked out).
-                    if streams is not None:
-                        restart = J_last
+    with torch.inference_mode():  # writes only into ``Js`` and the statistics' outputs
+        for blk in reversed(blocks):
+            t = blk.stop - blk.start
+            if rolling:  # row i: step blk.start + i; the last row is the later block's first
+                if t < size or blk.stop < T - 1:
+                    Js[t] = Js[0] if blk.stop < T - 1 else Js[-1]
+                Jb = Js[: t + 1]
+            else:
+                Jb = Js[blk.start : blk.stop + 1]
+            zf, zx, _ = _whitened_steps(model, data, X, logW, Cinv_t, blk, centred=False)
+            if streams is not None:  # (B, t, ...), row j: step blk.stop - 1 - j
+                n_draws = 2 * n_mcmc if method == "mcmc" else n_reject
+                kind = _UNIFORM_DTYPE if method == "mcmc" else dtype
+                draws = streams.steps(blk.start, blk.stop, limits, (n_draws,), kind, reverse=True)
+            if method == "mcmc":
+                pre = (draws, J_last) if streams is not None else (None, None)
+                A, kept = filt.ancestors, filt.resampled
+                _mcmc_block(Jb, blk, zf, zx, A, kept, logW, trans, all_valid, mcmc_steps, generator, *pre)
+            else:
+                cdfs = cumulative_weights(logW[blk])  # (t, B, L)
+                for k in range(blk.stop - 1, blk.start - 1, -1):
+                    i = k - blk.start
+                    J_next = Jb[i + 1]
+                    if nx == 1:
+                        x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (B, M, 1)
                     else:
-                        u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
-                        restart = inverse_cdf(cdfs[i], u)
-                    J = torch.where(trans[k].unsqueeze(-1), J, restart)
-                Jb[i] = J
-        if rolling:
-            stats.add(blk, Jb[:t], Jb[1:])
+                        x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(B, M, nx))  # (B, M, nx)
+                    pre = None if streams is None else draws[:, blk.stop - 1 - k]
+                    J = _reject(zf[i], x_next, logW[k], cdfs[i], max_tries, generator, pre)
+                    if not all_valid[k]:
+                        # Rows past a sequence's end restart from the filter (transitions masked out).
+                        if streams is not None:
+                            restart = J_last
+                        else:
+                            u = torch.rand(B, M, dtype=dtype, device=device, generator=generator)
+                            restart = inverse_cdf(cdfs[i], u)
+                        J = torch.where(trans[k].unsqueeze(-1), J, restart)
+                    Jb[i] = J
+            if rolling:
+                stats.add(blk, Jb[:t], Jb[1:])
     if rolling:
         return stats.finish()
     return _trajectory_statistics(X, logW, Js, trans)
