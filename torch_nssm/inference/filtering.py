@@ -242,7 +242,9 @@ def particle_filter(
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density (and arrays)
     # The steps write into the outputs made above (``out=``, in place) and run in inference mode:
     # no autograd bookkeeping on their ~20 operations and ~10 views a step (measured 5-8 % of a
-    # one-record E-step, 2,000 x 1,000 particles).  Nothing made inside leaves it.
+    # one-record E-step, 2,000 x 1,000 particles).  What is made inside (inference tensors: never
+    # saved for backward, never modified in place outside) leaves it only through the stacking of
+    # the per-step terms below, a new ordinary tensor (tests/inference/test_inference_mode.py).
     with torch.inference_mode():
         # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
         if fast_systematic:
