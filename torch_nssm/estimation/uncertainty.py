@@ -1075,6 +1075,7 @@ def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observ
     return grads.detach()
 
 
+@torch.inference_mode()  # returns arrays only: no autograd bookkeeping on its ~200 small operations
 def _windowed_covariance(
     scores: Tensor, own: Tensor, lag: int | None = None
 ) -> tuple[np.ndarray, int, np.ndarray]:
