@@ -23,7 +23,8 @@ the same machine load:
     python benchmarks/uncertainty_cost.py --manipulator --particles 1000 --repeats 3
 
 ``--cpu-time`` times by the process's CPU time instead of the wall clock: on a machine busy with
-other jobs the wall clock also counts the time the process waits for a core.
+other jobs the wall clock also counts the time the process waits for a core.  ``--trajectories M``
+sets the trajectories of both informations (the current and a ``--baseline``).
 """
 
 from __future__ import annotations
@@ -165,6 +166,7 @@ def main() -> None:
         help="time by the process's CPU time instead of the wall clock (one thread: steadier on a "
         "machine shared with other jobs, which then slow it only through the caches)",
     )
+    parser.add_argument("--trajectories", type=int, help="the informations' trajectories (default: theirs)")
     args = parser.parse_args()
     clock = time.process_time if args.cpu_time else time.perf_counter
     torch.set_num_threads(1)
@@ -176,6 +178,8 @@ def main() -> None:
     if args.manipulator:
         problems = (("manipulator", _manipulator),)
         options = dict(fit_Rw=False, fit_Rv=False, fit_dof=False, n_trajectories=TRAJECTORIES)
+    if args.trajectories:
+        options["n_trajectories"] = args.trajectories
     for name, build in problems:
         for L in args.particles:
             info, step, old = measure(build, L, args.repeats, baseline, clock, **options)

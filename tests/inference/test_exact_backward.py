@@ -1,11 +1,13 @@
 """The exact fallback draw of the backward sampler (torch_nssm.inference.smoothing._exact_backward)
-against the backward kernel computed directly, in both of its layouts of the pairs' tables."""
+against the backward kernel computed directly, in both of its layouts of the pairs' tables and in its
+direct form (one table per index, one state)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
+from torch_nssm.inference import smoothing
 from torch_nssm.inference.smoothing import _exact_backward
 
 
@@ -15,14 +17,17 @@ def _kernel(zf: torch.Tensor, lw: torch.Tensor, zx: torch.Tensor, row: int, nxt:
     return torch.softmax(logits, 0)
 
 
-@pytest.mark.parametrize("crowded", [False, True])
-def test_exact_backward_draws_follow_the_backward_kernel(crowded):
+@pytest.mark.parametrize(
+    "crowded, nx, direct", [(False, 2, False), (True, 2, False), (False, 1, False), (False, 1, True)]
+)
+def test_exact_backward_draws_follow_the_backward_kernel(crowded, nx, direct, monkeypatch):
     """Every (row, next particle) pair's draws follow its kernel within 5 binomial standard errors
     per particle (cells with probability above 1e-3), with the pairs spread over the rows (one
-    padded batched product) or crowded in one row of many (the rows' predictions gathered), and
-    particles of zero filter weight are never drawn."""
+    padded batched product) or crowded in one row of many (the rows' predictions gathered), or, for
+    one state, each index's table built directly; particles of zero filter weight are never drawn."""
+    monkeypatch.setattr(smoothing, "_EXACT_DIRECT_MAX", 1 << 30 if direct else 0)
     gen = torch.Generator().manual_seed(0)
-    R, L, nx, n = (12, 40, 2, 4000)
+    R, L, n = (12, 40, 4000)
     zf = torch.randn(R, L, nx, dtype=torch.float64, generator=gen) * 1.5
     zx = torch.randn(R, L, nx, dtype=torch.float64, generator=gen) * 1.5
     lw = torch.randn(R, L, dtype=torch.float64, generator=gen) * 2.0

@@ -576,9 +576,11 @@ _PIECE_CORE = 64
 #: drawn in rounds for the indices left, each round a dozen small operations), so more particles pay
 #: for more tries.  The exact draw builds one table per distinct (row, next particle) pair, shared by
 #: the indices left there, so it pays off early: 1/50 and 6 (6 / 10 / 20 tries at L = 200 / 500 /
-#: 1000) took 4-12 % off the information against 1/20 and 8 (2026-11-25, CPU time, both test models).
+#: 1000) took 4-12 % off the information against 1/20 and 8 (2026-11-25, CPU time, both test models);
+#: 4 rather than 6 at L = 200 (all tries in the first round, no further round: a round's dozen
+#: operations a step cost more than the exact draws they save) another 4-8 % (200 trajectories).
 _TRIES_PER_PARTICLE = 1 / 50
-_MIN_TRIES = 6
+_MIN_TRIES = 4
 
 
 @dataclass
@@ -1073,6 +1075,7 @@ def _row_scores_autograd(ll: _LogLikelihood, w0: Tensor, rows: _Rows, all_observ
     return grads.detach()
 
 
+@torch.inference_mode()  # returns arrays only: no autograd bookkeeping on its ~200 small operations
 def _windowed_covariance(
     scores: Tensor, own: Tensor, lag: int | None = None
 ) -> tuple[np.ndarray, int, np.ndarray]:

@@ -851,11 +851,28 @@ def backward_segments(
                 "log_weights (the marginal smoothing weights) are needed for pieces ending before T - 1"
             )
         log_weights = logW
+    Js = torch.empty(G, n, B, M, dtype=torch.long, device=device)  # ordinary: made outside the region
+    # the loop in inference mode (no autograd bookkeeping on its ~50 small operations a step, most
+    # of the sampler's time at M = 200); it only writes into Js and nothing it makes escapes
+    with torch.inference_mode():
+        _backward_segments_loop(
+            Js, model, data, X, logW, log_weights, first, ends, S, L, nx, generator
+        )
+    return Js
+
+
+def _backward_segments_loop(
+    Js: Tensor, model, data, X, logW, log_weights, first, ends, S: int, L: int, nx: int, generator
+) -> None:
+    """The draws of :func:`backward_segments`, written into ``Js`` ``(G, n, B, M)``."""
+    G, n, B, M = Js.shape
+    device = X.device
     Cinv_t = _whitening(model, B, X)
     trans = data.transition_mask
     GB = G * B
-    Js = torch.empty(G, n, B, M, dtype=torch.long, device=device)
-    Js[:, n - 1] = _draw(log_weights[ends], M, generator)  # (G, B, M)
+    J_next = _draw(log_weights[ends], M, generator)  # (G, B, M)
+    Js[:, n - 1] = J_next
+    J_next = J_next.view(GB, M)
     # the tries come in rounds: S1 for every index, drawn for blocks of steps before the loop, then
     # rounds of twice as many as the last for the indices none of the earlier ones accepted, drawn
     # in the loop (with acceptance rates about 0.4-0.5 the first round leaves a tenth; a try costs
@@ -864,6 +881,7 @@ def backward_segments(
     S2 = S - S1
     bits = torch.pow(2.0, torch.arange(S - 1, -1, -1, dtype=torch.float64, device=device))  # exact in float64
     rows_offset = torch.arange(GB, dtype=X.dtype, device=device).unsqueeze(-1)  # (GB, 1)
+    table = _first_try_table(S1, device)
     for blk in reversed(list(time_blocks(n - 1, GB * max(L, M * S1)))):
         t = blk.stop - blk.start
         times = (first.unsqueeze(0) + torch.arange(blk.start, blk.stop, device=device).unsqueeze(1)).view(-1)
@@ -877,7 +895,11 @@ def backward_segments(
         cdf = cumulative_weights(lw)  # (t, GB, L)
         u = torch.rand(t * GB, M * S1, dtype=X.dtype, device=device, generator=generator)
         props = inverse_cdf(cdf.view(t * GB, L), u).view(t, GB, M * S1)  # proposals from the filter weights
-        log_u = 2.0 * torch.log(torch.rand(t, GB, M, S1, dtype=X.dtype, device=device, generator=generator))
+        # accepted where |zx - zf|^2 < -2 log u: the thresholds for the whole block at once, from
+        # single-precision uniforms as the MCMC pass's (_UNIFORM_DTYPE: an acceptance probability
+        # set to 2^-24; half the cost of the doubles and their logarithms)
+        limit = torch.rand(t, GB, M, S1, dtype=_UNIFORM_DTYPE, device=device, generator=generator)
+        limit = limit.log_().mul_(-2.0)
         # the proposals' whitened predictions, gathered for the whole block at once
         if nx == 1:
             cand = torch.gather(zf[..., 0], 2, props).view(t, GB, M, S1)
@@ -888,23 +910,23 @@ def backward_segments(
         # searchsorted draws for indices of any rows (the second round)
         flat_cdf = (cdf + rows_offset).view(t, GB * L) if S2 else None
         for i in range(t - 1, -1, -1):
-            J_next = Js[:, blk.start + i + 1].reshape(GB, M)
             if nx == 1:
                 x_next = torch.gather(zx[i, ..., 0], 1, J_next).unsqueeze(-1)  # (GB, M, 1)
-                d = x_next - cand[i]
-                accept = log_u[i] < -(d * d)  # (GB, M, S1)
+                d = cand[i] - x_next
+                accept = d.mul_(d).lt_(limit[i])  # (GB, M, S1), as 0 / 1
             else:
                 x_next = torch.gather(zx[i], 1, J_next.unsqueeze(-1).expand(GB, M, nx))  # (GB, M, nx)
-                accept = log_u[i] < -squared_norm(x_next.unsqueeze(-2) - cand[i])
-            J, none = _first_accepted(props[i], accept, bits[-S1:])
+                accept = squared_norm(x_next.unsqueeze(-2) - cand[i]).lt_(limit[i])
+            J, none = _first_accepted(props[i], accept, bits[-S1:], table)
             b_idx, m_idx = torch.nonzero(none, as_tuple=True)
             if b_idx.numel():
-                zf_i = zf[i].reshape(GB * L, nx)
-                xn = x_next[b_idx, m_idx]  # (P, nx)
                 # where the first round left most indices, the tries accept so rarely (a tiny process
                 # noise) that the rounds are wasted: the exact draws at once
                 left = S2 if b_idx.numel() <= _ROUNDS_MAX_LEFT * GB * M else 0
                 S_r = S1
+                if left:
+                    zf_i = zf[i].reshape(GB * L, nx)
+                    xn = x_next[b_idx, m_idx]  # (P, nx)
                 while left and b_idx.numel():  # further rounds of tries, for these indices only
                     S_r = min(left, 2 * S_r)  # doubling: the indices left accept less often
                     left -= S_r
@@ -925,7 +947,7 @@ def backward_segments(
             if any_invalid[i]:  # past a sequence's end: restart from the filter
                 J = torch.where(valid[i].unsqueeze(-1), J, props[i, :, :, 0])
             Js[:, blk.start + i] = J.view(G, B, M)
-    return Js
+            J_next = J
 
 
 #: Rejection tries drawn for every index of :func:`backward_segments` before its loop; the rest of
@@ -949,6 +971,17 @@ def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tenso
     model, ``L = 200``): its ``O(L)`` table is built once per distinct pair, and each index draws
     from its pair's by a uniform of its own (one ``searchsorted`` over the tables laid end to end)."""
     R, L, nx = zf.shape
+    P = rows.numel()
+    if nx == 1 and P * L <= _EXACT_DIRECT_MAX:
+        # one state and few indices: each its own O(L) table, directly (~10 operations against the
+        # pairs' ~35, whose per-operation cost dominates at these sizes: 45 / 150 indices at
+        # L = 200 took 43 / 107 us against 88 / 147 us; with two states the (P, L, 2) differences
+        # cost more than they save: 203 against 157 us)
+        d = zf[rows, :, 0] - zx[rows, nxt]
+        logits = lw[rows].addcmul_(d, d, value=-0.5)
+        cdf = logits.sub_(logits.amax(-1, keepdim=True)).exp_().cumsum_(-1)
+        u = torch.rand(P, 1, dtype=cdf.dtype, device=cdf.device, generator=generator).mul_(cdf[:, -1:])
+        return torch.searchsorted(cdf, u, right=True).clamp_(max=L - 1).squeeze(-1)
     pairs, which = torch.unique(rows * L + nxt, return_inverse=True)  # sorted: by row, then particle
     r, j = pairs // L, pairs % L
     U = pairs.numel()
@@ -976,15 +1009,35 @@ def _exact_backward(zf: Tensor, lw: Tensor, zx: Tensor, rows: Tensor, nxt: Tenso
     return (pos - which * L).clamp_(0, L - 1)
 
 
-def _first_accepted(props: Tensor, accept: Tensor, bits: Tensor) -> tuple[Tensor, Tensor]:
+#: Up to this many entries (indices x particles), :func:`_exact_backward` builds one table per index
+#: directly instead of one per distinct (row, next particle) pair.
+_EXACT_DIRECT_MAX = 1 << 16
+
+
+def _first_accepted(
+    props: Tensor, accept: Tensor, bits: Tensor, table: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """The first accepted of the tries ``props`` ``(..., S)`` (``accept`` likewise), and where none was.
 
     The first accepted is the highest bit of ``sum_s accept_s 2^(S-1-s)`` (``bits``, float64): a
-    small product and ``frexp``, ~10x cheaper than ``argmax`` on a CPU."""
+    small product and ``frexp``, ~10x cheaper than ``argmax`` on a CPU; or, with ``table`` (the
+    try of each code, :func:`_first_try_table`), one lookup (two operations fewer)."""
     S = props.shape[-1]
     code = accept.to(bits.dtype) @ bits
-    tried = (S - torch.frexp(code).exponent).clamp_(0, S - 1)
-    return torch.gather(props, -1, tried.unsqueeze(-1).long()).squeeze(-1), code == 0
+    if table is not None:
+        tried = table[code.long()]
+    else:
+        tried = (S - torch.frexp(code).exponent).clamp_(0, S - 1).long()
+    return torch.gather(props, -1, tried.unsqueeze(-1)).squeeze(-1), code == 0
+
+
+def _first_try_table(S: int, device) -> Tensor:
+    """For each code ``sum_s accept_s 2^(S-1-s)`` of ``S`` tries, the first accepted (0 for none)."""
+    code = torch.arange(1 << S, device=device)
+    first = torch.zeros(1 << S, dtype=torch.long, device=device)
+    for s in range(S - 1, -1, -1):  # the last set wins: from the last try to the first
+        first[(code >> (S - 1 - s)) & 1 == 1] = s
+    return first
 
 
 #: The smoothers of the E-step, by name.
