@@ -8,8 +8,7 @@ import warnings
 
 import numpy as np
 import torch
-from conftest import generator, paper_model, simulate
-from inference.test_inference_mode import _inference_tensors
+from conftest import generator, inference_tensors, paper_model, simulate
 
 from torch_nssm import RobustNSSMEstimator
 from torch_nssm.blocks.linear import LinearObservation, LinearTransition
@@ -37,7 +36,7 @@ def _no_tensors(obj) -> list[str]:
     return []
 
 
-def test_information_outputs_hold_no_inference_tensors():
+def test_information_outputs_hold_noinference_tensors():
     model, data, est = _paper_estep()
     Js = backward_segments(
         model, data, est.filter, 30, [0, 40], 50, log_weights=est.smoother.log_weights,
@@ -47,12 +46,12 @@ def test_information_outputs_hold_no_inference_tensors():
     Js[0, 0, 0, 0] = 0  # an ordinary tensor: modifiable outside inference mode
 
     unc = observed_information(model, data, est, n_trajectories=40, generator=generator(4))
-    assert _inference_tensors(unc, "unc") == []
+    assert inference_tensors(unc, "unc") == []
     assert _no_tensors(vars(unc)) == []
     assert np.isfinite(unc.information).all()
 
     info = information_at(model, data, est, generator(5))
-    assert info is not None and _inference_tensors(info, "info") == []
+    assert info is not None and inference_tensors(info, "info") == []
 
     # the model's parameters still train: a loss through f and g, and its gradients
     params = [p for m in (model.f, model.g) for p in m.parameters()]
@@ -63,7 +62,7 @@ def test_information_outputs_hold_no_inference_tensors():
     assert all(p.grad is not None for p in params if p.requires_grad)
 
 
-def test_estimator_standard_errors_hold_no_inference_tensors():
+def test_estimator_standard_errors_hold_noinference_tensors():
     rng = np.random.default_rng(0)
     A, B = np.array([[0.8, 0.2], [-0.3, 0.6]]), np.array([[1.0], [0.5]])
     x, u = np.zeros((120, 2)), rng.standard_normal((120, 1))
@@ -81,8 +80,8 @@ def test_estimator_standard_errors_hold_no_inference_tensors():
         est.fit(u, y)
         se = est.standard_errors_
         ci = est.confidence_intervals()
-    assert _inference_tensors(se, "se") == [] and _no_tensors(se) == []
-    assert _inference_tensors(ci, "ci") == [] and _no_tensors(ci) == []
-    assert _inference_tensors(est._uncertainty, "unc") == []
+    assert inference_tensors(se, "se") == [] and _no_tensors(se) == []
+    assert inference_tensors(ci, "ci") == [] and _no_tensors(ci) == []
+    assert inference_tensors(est._uncertainty, "unc") == []
     assert not any(p.is_inference() for p in est.f_.parameters())
     est.f_.A.sum().backward()  # the fitted module still takes autograd

@@ -10,35 +10,13 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import generator, nonlinear_model, paper_model, simulate
+from conftest import generator, inference_tensors, nonlinear_model, paper_model, simulate
 
 from torch_nssm.core.model import SequenceBatch
 from torch_nssm.core.noise import StudentTPerOutputNoise
 from torch_nssm.estimation.estep import EStepOptions, e_step, to_records
 from torch_nssm.estimation.mstep import MStepOptions, m_step
 from torch_nssm.inference.random import SequenceStreams
-
-
-def _inference_tensors(obj, path="est", seen=None) -> list[str]:
-    """Paths of the inference tensors reachable from ``obj`` (dataclass fields, containers,
-    attributes)."""
-    seen = set() if seen is None else seen
-    if isinstance(obj, torch.Tensor):
-        return [path] if obj.is_inference() else []
-    if id(obj) in seen or obj is None or isinstance(obj, (int, float, bool, str, torch.nn.Module)):
-        return []
-    seen.add(id(obj))
-    if isinstance(obj, dict):
-        items = obj.items()
-    elif isinstance(obj, (list, tuple)):
-        items = enumerate(obj)
-    elif dataclasses.is_dataclass(obj):
-        items = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
-    elif hasattr(obj, "__dict__"):
-        items = vars(obj).items()
-    else:
-        return []
-    return [p for k, v in items for p in _inference_tensors(v, f"{path}.{k}", seen)]
 
 
 def _data(model, lengths, seed=0, missing=True):
@@ -79,9 +57,9 @@ def test_e_step_outputs_are_ordinary_tensors(name, smoother, ess, resampling, st
     gen = SequenceStreams([3, 4]) if streams else generator(0)
     first = e_step(model, data, opts, gen)
     est = e_step(model, data, opts, gen, first, recycle=first)  # with recycled arrays too
-    assert _inference_tensors(est) == []
+    assert inference_tensors(est) == []
     _ = est.smoother.log_weights  # the lazy log-weights
-    assert _inference_tensors(est) == []
+    assert inference_tensors(est) == []
     # autograd through the outputs: the M-step's gradient steps on f and g
     new = m_step([model], data, est, MStepOptions()).models[0]
     assert all(torch.isfinite(p).all() for p in new.f.parameters())
@@ -98,6 +76,6 @@ def test_windowed_e_step_outputs_are_ordinary_tensors():
     first = e_step(model, data, opts, gen, records=False)
     est = e_step(model, data, opts, gen, first, records=False)
     assert est.windows is not None
-    assert _inference_tensors(est) == []
-    assert _inference_tensors(to_records(est, model, data)) == []
+    assert inference_tensors(est) == []
+    assert inference_tensors(to_records(est, model, data)) == []
     m_step([model], est.windows.owned_data, est, MStepOptions())
