@@ -281,3 +281,44 @@ def inference_tensors(obj, path="est", seen=None) -> list[str]:
     else:
         return []
     return [p for k, v in items for p in inference_tensors(v, f"{path}.{k}", seen)]
+
+
+def _tensors(obj, path, seen):
+    if isinstance(obj, torch.Tensor):
+        yield path, obj
+        return
+    if id(obj) in seen or obj is None or isinstance(obj, (int, float, bool, str, torch.nn.Module)):
+        return
+    seen.add(id(obj))
+    if isinstance(obj, dict):
+        items = obj.items()
+    elif isinstance(obj, (list, tuple)):
+        items = enumerate(obj)
+    elif dataclasses.is_dataclass(obj):
+        items = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
+    elif hasattr(obj, "__dict__"):
+        items = vars(obj).items()
+    else:
+        return
+    for k, v in items:
+        yield from _tensors(v, f"{path}.{k}", seen)
+
+
+def not_modifiable(obj, path="est") -> list[str]:
+    """Paths of the floating tensors reachable from ``obj`` that cannot be changed in place in
+    normal mode, with an operand that requires grad, because of inference mode: besides inference
+    tensors, the views of ordinary tensors made in inference mode (which ``is_inference()`` does
+    not show).  (Views made under ``no_grad`` refuse that too, as they always did: not counted.)
+    Adds a zero, so the values stay; the tensors are part of a graph after."""
+    bad = []
+    for p, t in _tensors(obj, path, set()):
+        if not t.is_floating_point():
+            continue
+        zero = torch.zeros((), dtype=t.dtype, device=t.device, requires_grad=True)
+        try:
+            with torch.enable_grad():
+                t.add_(zero)
+        except RuntimeError as error:
+            if "inference" in str(error).lower():
+                bad.append(p)
+    return bad

@@ -169,3 +169,30 @@ def test_large_modules_are_left_out_with_a_warning(data):
     with pytest.warns(RuntimeWarning, match="no standard errors for f"):
         se = est.standard_errors_
     assert set(se) == {"g.c", "Rw", "Rv", "dof"}
+
+
+def test_multi_state_model_on_several_records_has_standard_errors():
+    """Two states and two records: the information's sampler whitens ``transition_steps``, whose
+    default returns another memory layout (through ``(B, t, ...)``); a ``view`` of it failed."""
+    from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+
+    rng = np.random.default_rng(0)
+    A, B = np.array([[0.8, 0.2], [-0.3, 0.6]]), np.array([[1.0], [0.5]])
+    us, ys = [], []
+    for _ in range(2):
+        x, u = np.zeros((120, 2)), rng.standard_normal((120, 1))
+        for k in range(119):
+            x[k + 1] = A @ x[k] + B @ u[k] + 0.3 * rng.standard_normal(2)
+        us.append(u)
+        ys.append(x + 0.25 * rng.standard_normal((120, 2)))
+    g = LinearObservation(2, 1, 2, fit_offset=False)
+    g.C.requires_grad_(False)
+    est = RobustNSSMEstimator(
+        LinearTransition(2, 1, A=A, B=B), g, x0_mean=np.zeros(2), noise="gaussian",
+        n_particles=50, n_iter=2, tol=0, random_state=0,
+    )  # fmt: skip
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        se = est.fit(us, ys).standard_errors_
+    assert se["f.A"].shape == (2, 2) and se["f.B"].shape == (2, 1)
+    assert np.isfinite(se["f.A"]).all() and (se["f.A"] > 0).all()

@@ -891,8 +891,10 @@ def _backward_segments_loop(
         times = (first.unsqueeze(0) + torch.arange(blk.start, blk.stop, device=device).unsqueeze(1)).view(-1)
         # the steps of every piece, piece-major within a local step: (t, G * B, ...)
         fx = model.transition_steps(X[times], data.u[times])  # (t * G, B, L, nx)
-        zf = _whitened(fx, Cinv_t).view(t, GB, L, nx)
-        zx = _whitened(X[times + 1], Cinv_t).view(t, GB, L, nx)
+        # reshape, not view: a module's transition_steps may return another memory layout (the
+        # default goes through (B, t, ...) and back), which the elementwise whitening keeps
+        zf = _whitened(fx, Cinv_t).reshape(t, GB, L, nx)
+        zx = _whitened(X[times + 1], Cinv_t).reshape(t, GB, L, nx)
         lw = logW[times].view(t, GB, L)
         valid = trans[times].view(t, GB)
         any_invalid = (~valid).any(-1).tolist()
