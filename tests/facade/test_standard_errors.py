@@ -135,8 +135,10 @@ def test_per_output_noise_has_diagonal_scale_and_one_dof_per_output(data):
     rng = np.random.default_rng(0)
     y = np.column_stack([data.x[:, 0], 0.5 * data.x[:, 0]]) + 0.3 * rng.standard_normal((len(data.x), 2))
     g = LinearObservation(1, 1, 2, C=[[1.0], [0.5]])
+    f = PaperTransition(0.9, 1.0)
+    f.b.requires_grad_(False)  # with b and C both free the state's scale is not determined
     est = RobustNSSMEstimator(
-        PaperTransition(0.9, 1.0),
+        f,
         g,
         x0_mean=[0.0],
         Rw_init=0.1,
@@ -151,7 +153,13 @@ def test_per_output_noise_has_diagonal_scale_and_one_dof_per_output(data):
         warnings.simplefilter("ignore")
         est.fit(data.u, y)
     se = est.standard_errors_
-    assert se["Rv"].shape == (2, 2) and se["Rv"][0, 1] == 0 and np.all(np.diag(se["Rv"]) > 0)
+    # the structure: a diagonal scale (no off-diagonal entry estimated) and one dof per output.
+    # Where the information is not positive definite (3 EM iterations, 100 particles: in 1-3 of
+    # 12 seeds along g and Rw, with either Student-t family) the undetermined entries are NaN
+    # with a warning; the determined ones are positive.
+    d = np.diag(se["Rv"])
+    assert se["Rv"].shape == (2, 2) and se["Rv"][0, 1] == 0 and np.all(np.isnan(d) | (d > 0))
+    assert np.isfinite(d).any()
     assert se["dof"].shape == (2,) and se["g.C"].shape == (2, 1) and se["g.d"].shape == (2,)
     assert "Rv[0, 1]" not in est.parameter_names_ and "dof[1]" in est.parameter_names_
 
