@@ -260,30 +260,15 @@ def generator(seed: int) -> torch.Generator:
     return g
 
 
-def inference_tensors(obj, path="est", seen=None) -> list[str]:
+def inference_tensors(obj, path="est") -> list[str]:
     """Paths of the inference tensors reachable from ``obj`` (dataclass fields, containers,
     attributes): the per-step loops run in inference mode, and none of what they make may leave
     them as such (it could not be saved for backward nor changed in place outside)."""
-    seen = set() if seen is None else seen
-    if isinstance(obj, torch.Tensor):
-        return [path] if obj.is_inference() else []
-    if id(obj) in seen or obj is None or isinstance(obj, (int, float, bool, str, torch.nn.Module)):
-        return []
-    seen.add(id(obj))
-    if isinstance(obj, dict):
-        items = obj.items()
-    elif isinstance(obj, (list, tuple)):
-        items = enumerate(obj)
-    elif dataclasses.is_dataclass(obj):
-        items = ((f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj))
-    elif hasattr(obj, "__dict__"):
-        items = vars(obj).items()
-    else:
-        return []
-    return [p for k, v in items for p in inference_tensors(v, f"{path}.{k}", seen)]
+    return [p for p, t in _tensors(obj, path, set()) if t.is_inference()]
 
 
 def _tensors(obj, path, seen):
+    """(path, tensor) of every tensor reachable from ``obj``: dataclass fields, containers, attributes."""
     if isinstance(obj, torch.Tensor):
         yield path, obj
         return

@@ -320,7 +320,6 @@ def particle_filter(
                 ss.append(s)
             if not always:
                 norms.append(torch.linalg.vector_norm(e, dim=-1, keepdim=True))
-            if not always:
                 log_w = z - torch.log(s)
     m_all, s_all = torch.stack(ms), torch.stack(ss)  # (T, B, 1)
     if inv_s:

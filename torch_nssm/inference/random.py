@@ -136,26 +136,18 @@ class SequenceStreams:
                 out[b, pad] = fill
         return out
 
-    def normal_steps_into(
-        self, out: Tensor, limits: Sequence[int], dtype: torch.dtype, scale: Tensor | None = None
-    ) -> None:
+    def normal_steps_into(self, out: Tensor, limits: Sequence[int], dtype: torch.dtype) -> None:
         """Standard normals of the steps ``k < limits[b]`` of each sequence into ``out`` ``(t, B,
         ...)`` (time-major, any dtype; zero elsewhere): the numbers of :meth:`steps` with
         ``normal=True, fill=0``, each sequence's drawn in ``dtype`` into one reused buffer and
-        widened into its column of ``out``, times ``scale[b]`` where ``scale`` ``(B,)`` (in
-        ``out``'s dtype) is given (the same values as widening, then multiplying)."""
+        widened into its column of ``out``."""
         t, shape = out.shape[0], tuple(out.shape[2:])
         buffer = torch.empty((t, *shape), dtype=dtype, device=self.device)
-        # (1,) each, not 0-dim: the products are then computed in out's dtype
-        factors = None if scale is None else scale.reshape(-1, 1).unbind(0)
         for b in range(len(self)):
             n = max(0, min(t, int(limits[b])))
             if n:
                 self._draw(torch.randn, b, (n, *shape), dtype, buffer[:n])
-                if factors is None:
-                    out[:n, b].copy_(buffer[:n])
-                else:  # widened and scaled in one pass
-                    torch.mul(buffer[:n], factors[b], out=out[:n, b])
+                out[:n, b].copy_(buffer[:n])
             if n < t:
                 out[n:, b] = 0.0
 

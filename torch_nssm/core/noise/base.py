@@ -103,9 +103,14 @@ def step_views(values: Tensor) -> Sequence[Tensor]:
         whitener or a Student-t coefficient of records without missing outputs), else
         ``values.unbind(0)``.
     """
-    if values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values)):
+    if same_at_every_step(values):
         return [values[0]] * values.shape[0]
     return values.unbind(0)
+
+
+def same_at_every_step(values: Tensor) -> bool:
+    """Whether the time-major ``values`` ``(T, ...)`` (``T > 1``) hold the same values at every step."""
+    return values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values))
 
 
 def symmetric_pd(S: Tensor, jitter: float = 0.0) -> Tensor:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, masked_scale, standard_gamma, step_views
+from .base import MaskedScale, masked_scale, same_at_every_step, standard_gamma, step_views
 from .joint import JointScaleNoise, SquaredNormEvaluator
 
 __all__ = [
@@ -133,17 +133,13 @@ def check_dof_init(dof: float) -> None:
         )
 
 
-def _same_at_every_step(values: Tensor) -> bool:
-    return values.shape[0] > 1 and torch.equal(values, values[:1].expand_as(values))
-
-
 class _StudentTEvaluator(SquaredNormEvaluator):
     """The filter's fused log-density: ``-(nu + p)/2 log1p(delta2 / nu)`` with the per-``(T, B)``
     coefficients split into per-step views once per pass."""
 
     def __init__(self, dof: Tensor, scale: MaskedScale, n_particles: int):
         logdet, n_obs = scale.logdet, scale.n_obs
-        if _same_at_every_step(logdet) and _same_at_every_step(n_obs):  # nothing missing: one step's
+        if same_at_every_step(logdet) and same_at_every_step(n_obs):  # nothing missing: one step's
             # constants, expanded (the lgamma of every (T, B) entry cost ~3 ms at T = 1000, B = 100)
             const = student_t_log_prob(torch.zeros_like(logdet[:1]), logdet[:1], n_obs[:1], dof)
             const = const.expand_as(logdet)
