@@ -1,5 +1,5 @@
 """Parametric-bootstrap intervals: simulate from the fitted model, refit every record in one batched
-EM pass (:func:`~torch_nssm.estimator.fit_independent`), read percentile intervals.
+EM pass (:func:`~torch_nssm.studies.fit_independent`), read percentile intervals.
 
 The observed-information intervals (``RobustNSSMEstimator.confidence_intervals``) rest on the
 normal approximation of the estimator; the bootstrap does not, at the price of ``n_boot`` refits
@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from sklearn.base import clone
 from sklearn.utils import check_random_state
+
+from .studies import fit_independent
 
 __all__ = ["BootstrapResult", "parametric_bootstrap", "parameter_values"]
 
@@ -80,8 +82,6 @@ def parametric_bootstrap(est, u, *, n_boot: int = 100, level: float = 0.95, rand
     -------
     BootstrapResult
     """
-    from .estimator import fit_independent  # the facade layer: imported when called
-
     est._check_fitted()
     if not 0 < level < 1:
         raise ValueError(f"level must lie in (0, 1), got {level!r}")

@@ -118,21 +118,7 @@ def distill(
         raise ValueError("module has no parameters with requires_grad=True to train")
     ref_t = next(iter(list(module.parameters()) + list(module.buffers())))
     kw = dict(dtype=ref_t.dtype, device=ref_t.device)
-    xt = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, Tensor) else x).to(**kw)
-    if xt.dim() != 2 or xt.shape[0] == 0:
-        raise ValueError(f"x must have shape (M, nx) with M >= 1, got shape {tuple(xt.shape)}")
-    if u is None:
-        ut = xt.new_zeros(xt.shape[0], 0)
-    else:
-        ut = torch.as_tensor(np.asarray(u, dtype=np.float64) if not isinstance(u, Tensor) else u).to(**kw)
-        if ut.dim() == 1:
-            ut = ut.unsqueeze(-1)
-        if ut.dim() != 2 or ut.shape[0] != xt.shape[0]:
-            raise ValueError(
-                f"u must have shape ({xt.shape[0]}, nu) like x's rows, got shape {tuple(ut.shape)}"
-            )
-    if not (bool(torch.isfinite(xt).all()) and bool(torch.isfinite(ut).all())):
-        raise ValueError("x and u must be finite")
+    xt, ut = _distillation_rows(x, u, kw)
     target = _target(copy.deepcopy(reference).to(**kw), xt, ut)
     with torch.no_grad():
         start = module(xt, ut)
@@ -141,14 +127,7 @@ def distill(
             "module and reference must return the same shape, "
             f"got {tuple(start.shape)} and {tuple(target.shape)}"
         )
-    if scale is None:
-        base = target if baseline is None else target - torch.as_tensor(np.asarray(baseline)).to(target)
-        s = base.std(dim=0) if base.shape[0] > 1 else base.abs().mean(dim=0)
-        s = torch.where(torch.isfinite(s) & (s > 1e-12), s, torch.ones_like(s))
-    else:
-        s = torch.as_tensor(np.asarray(scale, dtype=np.float64)).to(target).expand(target.shape[-1]).clone()
-        if not bool((s > 0).all()):
-            raise ValueError("scale must be positive")
+    s = _output_scale(target, baseline, scale)
 
     opt = torch.optim.LBFGS(
         params,
@@ -175,6 +154,39 @@ def distill(
         module.load_state_dict(backup)
         loss = loss0
     return math.sqrt(loss)
+
+
+def _distillation_rows(x, u, kw: dict) -> tuple[Tensor, Tensor]:
+    """``x`` ``(M, nx)`` and ``u`` ``(M, nu)`` (``None``: no input) as finite tensors."""
+    xt = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, Tensor) else x).to(**kw)
+    if xt.dim() != 2 or xt.shape[0] == 0:
+        raise ValueError(f"x must have shape (M, nx) with M >= 1, got shape {tuple(xt.shape)}")
+    if u is None:
+        ut = xt.new_zeros(xt.shape[0], 0)
+    else:
+        ut = torch.as_tensor(np.asarray(u, dtype=np.float64) if not isinstance(u, Tensor) else u).to(**kw)
+        if ut.dim() == 1:
+            ut = ut.unsqueeze(-1)
+        if ut.dim() != 2 or ut.shape[0] != xt.shape[0]:
+            raise ValueError(
+                f"u must have shape ({xt.shape[0]}, nu) like x's rows, got shape {tuple(ut.shape)}"
+            )
+    if not (bool(torch.isfinite(xt).all()) and bool(torch.isfinite(ut).all())):
+        raise ValueError("x and u must be finite")
+    return xt, ut
+
+
+def _output_scale(target: Tensor, baseline, scale) -> Tensor:
+    """The scale of each output of the distillation loss: ``scale``, or the spread of the targets
+    (less ``baseline``)."""
+    if scale is None:
+        base = target if baseline is None else target - torch.as_tensor(np.asarray(baseline)).to(target)
+        s = base.std(dim=0) if base.shape[0] > 1 else base.abs().mean(dim=0)
+        return torch.where(torch.isfinite(s) & (s > 1e-12), s, torch.ones_like(s))
+    s = torch.as_tensor(np.asarray(scale, dtype=np.float64)).to(target).expand(target.shape[-1]).clone()
+    if not bool((s > 0).all()):
+        raise ValueError("scale must be positive")
+    return s
 
 
 # ---------------------------------------------------------------------- the warm start
@@ -331,20 +343,7 @@ def warm_start_estimator(
     (``init_jitter``), which throws the warm start away.
     """
     t0 = time.perf_counter()
-    if not isinstance(estimator, RobustNSSMEstimator):
-        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
-    for name, ref in (("reference_f", reference_f), ("reference_g", reference_g)):
-        if ref is not None and not isinstance(ref, nn.Module):
-            raise TypeError(
-                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
-            )
-    if noise is not None:
-        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
-    V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
-    if n_particles is not None:
-        V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
-    V.check_positive(n_jitter, "n_jitter", integer=True, minimum=0, inclusive=True)
-    V.check_positive(distill_iter, "distill_iter", integer=True, minimum=1, inclusive=True)
+    _check_arguments(estimator, reference_f, reference_g, noise, n_iter, n_particles, n_jitter, distill_iter)
     if not isinstance(return_info, (bool, np.bool_)):
         raise TypeError(f"return_info must be True or False, got {return_info!r}")
     f, g = estimator.f, estimator.g
@@ -359,21 +358,37 @@ def warm_start_estimator(
     seed = estimator.random_state if random_state is None else random_state
 
     # 1. the reference model
-    if reference_f is not None:
-        ref_f, f_action = reference_f, "distilled" if _has_free_parameters(f) else "kept"
-    elif isinstance(f, GreyBoxTransition):
-        ref_f, f_action = copy.deepcopy(f.physical), "physical"
-    elif _cheap(f):
-        ref_f, f_action = f, "fitted"
-    else:
-        ref_f, f_action = LinearTransition(nx, nu, dtype=estimator.dtype), "distilled"
-    if reference_g is not None:
-        ref_g, g_action = reference_g, "distilled" if _has_free_parameters(g) else "kept"
-    elif isinstance(g, MLPObservation):
-        ref_g, g_action = _default_reference_g(nx, nu, ys), "distilled"
-    else:
-        ref_g, g_action = g, "fitted"
-    reference = clone(estimator).set_params(
+    (ref_f, f_action), (ref_g, g_action) = _references(estimator, reference_f, reference_g, nx, nu, ys)
+    reference = _reference_estimator(estimator, ref_f, ref_g, noise, n_iter, n_particles, seed)
+    reference.fit(u, y)
+
+    # 2. smoothed states: where the network must be right
+    sm = reference.smooth(u, y)
+    sms = sm if multi else [sm]
+    (x_now, x_next, u_now), X, U = _training_rows(reference, sms, us, n_jitter, seed)
+
+    # 3. the modules of the real fit
+    f_new, f_error = _transition(f, f_action, reference, x_now, u_now, x_next, X, U, distill_iter)
+    g_new, g_error = _observation(g, g_action, reference, X, U, ys, distill_iter)
+
+    warm = _warm(estimator, reference, f_new, g_new)
+    if not return_info:
+        return warm
+    info = WarmStartInfo(
+        reference=reference,
+        f_error=f_error,
+        g_error=g_error,
+        f_action=f_action,
+        g_action=g_action,
+        n_rows=int(X.shape[0]),
+        seconds=time.perf_counter() - t0,
+    )
+    return warm, info
+
+
+def _reference_estimator(estimator, ref_f, ref_g, noise, n_iter: int, n_particles, seed):
+    """The quick fit of the reference modules: ``estimator``'s settings, plain EM from one start."""
+    return clone(estimator).set_params(
         f=ref_f,
         g=ref_g,
         noise=estimator.noise if noise is None else noise,
@@ -389,11 +404,65 @@ def warm_start_estimator(
         random_state=seed,
         verbose=0,
     )
-    reference.fit(u, y)
 
-    # 2. smoothed states: where the network must be right
-    sm = reference.smooth(u, y)
-    sms = sm if multi else [sm]
+
+def _warm(estimator, reference, f_new, g_new):
+    """``estimator`` set to start from the new modules and the reference's fitted noise and prior."""
+    params: dict[str, Any] = dict(
+        f=f_new,
+        g=g_new,
+        x0_mean=reference.x0_mean_.copy(),
+        x0_cov=reference.x0_cov_.copy(),
+        Rw_init=reference.Rw_.copy(),
+        Rv_init=reference.Rv_.copy(),
+    )
+    if estimator.noise == "student-t" and math.isfinite(reference.dof_):
+        params["dof_init"] = float(reference.dof_)
+    return clone(estimator).set_params(**params)
+
+
+def _check_arguments(estimator, reference_f, reference_g, noise, n_iter, n_particles, n_jitter, distill_iter):
+    if not isinstance(estimator, RobustNSSMEstimator):
+        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
+    for name, ref in (("reference_f", reference_f), ("reference_g", reference_g)):
+        if ref is not None and not isinstance(ref, nn.Module):
+            raise TypeError(
+                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
+            )
+    if noise is not None:
+        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
+    V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
+    if n_particles is not None:
+        V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
+    V.check_positive(n_jitter, "n_jitter", integer=True, minimum=0, inclusive=True)
+    V.check_positive(distill_iter, "distill_iter", integer=True, minimum=1, inclusive=True)
+
+
+def _references(estimator, reference_f, reference_g, nx: int, nu: int, ys) -> tuple:
+    """The reference modules of the quick fit and what becomes of ``f`` and ``g`` (``"kept"``,
+    ``"physical"``, ``"fitted"``, ``"distilled"``): ``((ref_f, f_action), (ref_g, g_action))``."""
+    f, g = estimator.f, estimator.g
+    if reference_f is not None:
+        ref_f, f_action = reference_f, "distilled" if _has_free_parameters(f) else "kept"
+    elif isinstance(f, GreyBoxTransition):
+        ref_f, f_action = copy.deepcopy(f.physical), "physical"
+    elif _cheap(f):
+        ref_f, f_action = f, "fitted"
+    else:
+        ref_f, f_action = LinearTransition(nx, nu, dtype=estimator.dtype), "distilled"
+    if reference_g is not None:
+        ref_g, g_action = reference_g, "distilled" if _has_free_parameters(g) else "kept"
+    elif isinstance(g, MLPObservation):
+        ref_g, g_action = _default_reference_g(nx, nu, ys), "distilled"
+    else:
+        ref_g, g_action = g, "fitted"
+    return (ref_f, f_action), (ref_g, g_action)
+
+
+def _training_rows(reference, sms: list, us: list, n_jitter: int, seed) -> tuple:
+    """From the reference's smoothed states ``sms``: the transitions ``(x_now, x_next, u_now)``,
+    and the rows ``X``, ``U`` where the modules are distilled (the smoothed means and ``n_jitter``
+    copies jittered by their spread plus the process noise)."""
     rng = np.random.default_rng(
         None if seed is None or not isinstance(seed, (int, np.integer)) else int(seed)
     )
@@ -416,48 +485,33 @@ def warm_start_estimator(
         )
         rows_u.append(rows_u[0])
     X, U = np.concatenate(rows_x, axis=0), np.concatenate(rows_u, axis=0)
+    return (x_now, x_next, u_now), X, U
 
-    # 3. the modules of the real fit
+
+def _transition(f, action: str, reference, x_now, u_now, x_next, X, U, distill_iter: int) -> tuple:
+    """The ``f`` of the real fit and its distillation error (``None`` if not distilled)."""
     f_new = copy.deepcopy(f)
     f_error: float | None = None
-    if f_action == "fitted":
+    if action == "fitted":
         f_new = copy.deepcopy(reference.f_)
-    elif f_action == "physical":
+    elif action == "physical":
         f_new.physical.load_state_dict(reference.f_.state_dict())
         f_new.fit_normalisation(x_now, u_now, x_next=x_next)
-    elif f_action == "distilled":
+    elif action == "distilled":
         if isinstance(f_new, (MLPTransition, GreyBoxTransition)):
             f_new.fit_normalisation(x_now, u_now, x_next=x_next)
         f_error = distill(f_new, reference.f_, X, U, baseline=X, max_iter=distill_iter)
+    return f_new, f_error
+
+
+def _observation(g, action: str, reference, X, U, ys, distill_iter: int) -> tuple:
+    """The ``g`` of the real fit and its distillation error (``None`` if not distilled)."""
     g_new = copy.deepcopy(g)
     g_error: float | None = None
-    if g_action == "fitted":
+    if action == "fitted":
         g_new = copy.deepcopy(reference.g_)
-    elif g_action == "distilled":
+    elif action == "distilled":
         if isinstance(g_new, MLPObservation):
             g_new.fit_normalisation(X, U if g_new.nu > 0 else None, y=np.concatenate(ys, axis=0))
         g_error = distill(g_new, reference.g_, X, U, max_iter=distill_iter)
-
-    params: dict[str, Any] = dict(
-        f=f_new,
-        g=g_new,
-        x0_mean=reference.x0_mean_.copy(),
-        x0_cov=reference.x0_cov_.copy(),
-        Rw_init=reference.Rw_.copy(),
-        Rv_init=reference.Rv_.copy(),
-    )
-    if estimator.noise == "student-t" and math.isfinite(reference.dof_):
-        params["dof_init"] = float(reference.dof_)
-    warm = clone(estimator).set_params(**params)
-    if not return_info:
-        return warm
-    info = WarmStartInfo(
-        reference=reference,
-        f_error=f_error,
-        g_error=g_error,
-        f_action=f_action,
-        g_action=g_action,
-        n_rows=int(X.shape[0]),
-        seconds=time.perf_counter() - t0,
-    )
-    return warm, info
+    return g_new, g_error

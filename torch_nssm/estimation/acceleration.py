@@ -17,6 +17,9 @@ the process noise's once the Newton steps end.  (Jumping ``Rw`` while the Newton
 the maximum over ``f`` and ``g`` under those steps; docs/design.md, "Accelerated EM", has the
 variants measured on six manipulator records.)
 
+The EM loop sees the acceleration through :class:`Acceleration`'s hooks (before and after the
+M-step, after the E-step); :class:`NewtonAcceleration` is ``acceleration="newton"``.
+
 Safeguards: the EM step where ``I`` is not positive definite; a step at most ``MAX_FACTOR`` times
 the EM step (in the ``I_c`` norm); a step after which the log-likelihood estimate falls by more
 than :func:`newton_tolerance` is undone (the EM step is taken) and ends the acceleration; and
@@ -36,9 +39,13 @@ import torch
 
 from ..core.model import SequenceBatch, StateSpaceModel
 from .estep import EStepOutput
+from .snapshot import restore, snapshot
 from .uncertainty import observed_information
 
 __all__ = [
+    "Acceleration",
+    "NewtonAcceleration",
+    "acceleration_for",
     "InformationAt",
     "NoiseExtrapolation",
     "NewtonStep",
@@ -302,3 +309,111 @@ class NoiseExtrapolation:
         Rw = value(jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
         noise = {n: value(a, getattr(model.noise, n)) for n, a in jumps.items() if n != "Rw"}
         return dataclasses.replace(model, Rw=Rw, noise=model.noise.replace(**noise))
+
+
+# --------------------------------------------------------------------------- the EM loop's hooks
+class Acceleration:
+    """The EM loop's hooks for an acceleration; this base class is plain EM (the hooks do nothing).
+
+    The loop calls :meth:`start` after the first E-step, :meth:`before_mstep` with the E-step at the
+    current parameters, :meth:`after_mstep` with the M-step's iterate (the model returned is the
+    one whose E-step runs next), and :meth:`after_estep` once that E-step has run or failed (a
+    model returned is the M-step's iterate to go back to: the loop runs its E-step instead).
+    """
+
+    def start(self, model: StateSpaceModel) -> None:
+        """EM starts at ``model`` (its E-step has run)."""
+
+    def before_mstep(self, model: StateSpaceModel, data: SequenceBatch, estep: EStepOutput, generator):
+        """``estep`` is the E-step at ``model``, whose M-step runs next."""
+
+    def after_mstep(self, model: StateSpaceModel, rejected: bool) -> StateSpaceModel:
+        """The model whose E-step runs next, from the M-step's iterate ``model`` (``rejected``: the
+        M-step undid a module's step)."""
+        return model
+
+    def after_estep(self, log_likelihood: float, estep: EStepOutput | None) -> StateSpaceModel | None:
+        """After the E-step at :meth:`after_mstep`'s model (``estep``; ``None``: it failed), with
+        ``log_likelihood`` the estimate before the M-step: the M-step's iterate to go back to, or
+        ``None`` to keep the step."""
+        return None
+
+
+class NewtonAcceleration(Acceleration):
+    """``acceleration="newton"``: Newton steps for ``f``'s and ``g``'s parameters (:func:`newton_step`)
+    until a step is within one standard error, and squared extrapolation of the noise parameters
+    (:class:`NoiseExtrapolation`: the measurement noise's from the start, the process noise's once
+    the Newton steps end).  An accelerated step after which the log-likelihood estimate falls by
+    more than :func:`newton_tolerance` (or whose E-step fails) is undone and ends the Newton steps.
+
+    Parameters
+    ----------
+    dof_bounds : (float, float)
+        Bracket of the degrees of freedom (the extrapolation's clip).
+    n_obs : int
+        Observed samples (the extrapolation's least step, the tolerance of a lost step).
+    flags : list of bool
+        ``history["accelerated"]``: one flag per iterate, appended after each M-step.
+    """
+
+    def __init__(self, dof_bounds: tuple[float, float], n_obs: int, flags: list):
+        self.newton = True  # Newton steps go on (each needs the information before the M-step)
+        self.previous_step: np.ndarray | None = None  # the last Newton step taken
+        self.max_factor = MAX_FACTOR  # the cap of the next Newton step
+        self.extrapolation = NoiseExtrapolation(dof_bounds, n_obs)
+        self.tolerance = newton_tolerance(n_obs)
+        self.flags = flags
+        self.at: InformationAt | None = None
+        self.em_iterate: tuple | None = None  # while an accelerated step replaces the M-step's
+
+    def start(self, model: StateSpaceModel) -> None:
+        self.extrapolation.start(model)
+
+    def before_mstep(self, model: StateSpaceModel, data: SequenceBatch, estep: EStepOutput, generator):
+        """The information at the current parameters, before the M-step moves them."""
+        self.at, self.em_iterate = None, None
+        if self.newton:
+            try:
+                self.at = information_at(model, data, estep, generator)
+            except (RuntimeError, ValueError, NotImplementedError, torch.linalg.LinAlgError):
+                self.at = None
+            self.newton = self.at is not None
+
+    def after_mstep(self, model: StateSpaceModel, rejected: bool) -> StateSpaceModel:
+        if self.at is not None and not rejected:
+            kept = snapshot(model)
+            step = newton_step(self.at, model, self.previous_step, self.max_factor)
+            if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
+                self.max_factor /= 2.0
+            self.newton = not step.done and self.max_factor >= 2.0
+            if step.taken:
+                self.em_iterate, self.previous_step = kept, step.delta
+        # the measurement noise jumps from the start, the process noise once the Newton steps end
+        # (its jumps moved their maximum)
+        extrapolated = self.extrapolation.propose(model, rejected, ("Rw",) if self.newton else ())
+        if extrapolated is not None:
+            self.em_iterate = snapshot(model) if self.em_iterate is None else self.em_iterate
+            model = extrapolated
+        self.flags.append(self.em_iterate is not None)
+        return model
+
+    def after_estep(self, log_likelihood: float, estep: EStepOutput | None) -> StateSpaceModel | None:
+        if self.em_iterate is None:
+            return None
+        if estep is not None and log_likelihood - float(estep.log_likelihood.sum()) <= self.tolerance:
+            return None
+        # the accelerated step lost likelihood or failed: the M-step's iterate, EM from here for f
+        # and g, and for the noise shorter jumps in a new cycle
+        model, self.newton = restore(self.em_iterate), False
+        self.flags[-1] = False
+        self.extrapolation.undone(model)
+        return model
+
+
+def acceleration_for(name: str | None, *, dof_bounds: tuple[float, float], n_obs: int, history: dict):
+    """The loop's :class:`Acceleration` for ``acceleration=name`` (``None``: plain EM); ``history``
+    receives the ``"accelerated"`` flags."""
+    if name != "newton":
+        return Acceleration()
+    history["accelerated"] = []
+    return NewtonAcceleration(dof_bounds, n_obs, history["accelerated"])

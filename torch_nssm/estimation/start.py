@@ -1,0 +1,365 @@
+"""How a fit starts, and the check of its simulation after EM (docs/design.md, "How a fit starts").
+
+:func:`plan_start` is the one entry point before EM: given the initial model, the data and the
+settings it runs the first stage (:mod:`.first_stage`) and decides whether its result is kept
+(:func:`keep_first_stage`: the ``SIMULATION_R2_FLOOR`` of ``first_stage="auto"``), computes the
+divergence limit of the restarts (:func:`divergence_limit`) and draws their seeds
+(:func:`restart_seeds`).  :meth:`Start.run_start` then gives EM run ``r`` its start: run 0 the
+planned model, the others a jittered copy whose simulation stays bounded (:func:`stable_jitter`)
+with ``g`` refitted to ``y`` along it (:func:`g_fitted_to_y`).  After EM, :func:`check_simulation`
+compares the fit's noise-free simulation with the first stage's and, under ``fit_Rw="auto"``, runs
+EM again from the first stage with the process noise held.
+
+Nothing here warns: what happened is recorded (:class:`Start`, :class:`SimulationCheck`) and
+:mod:`torch_nssm.diagnostics.fit_warnings` says it in words.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable
+
+import numpy as np
+import torch
+from sklearn.utils import check_random_state
+
+from .._stats import MAD_TO_STD, robust_scale
+from ..core.model import SequenceBatch, StateSpaceModel
+from ..core.parametric import LinearInParameters
+from ..inference import prediction
+from ..metrics import robust_r2_score
+from .first_stage import FirstStageReport, first_stage_applies, held_process_noise, simulation_error_fit
+
+__all__ = [
+    "Start",
+    "StartSettings",
+    "SimulationCheck",
+    "plan_start",
+    "check_simulation",
+    "restart_seeds",
+    "seeded_generator",
+    "copy_model",
+    "CAUCHY_TUNING",
+    "FIRST_STAGE_WINDOW",
+    "SIMULATION_R2_FLOOR",
+    "SIMULATION_TOLERANCE",
+]
+
+#: Tuning constant of the Cauchy weights (95 % efficiency at the normal).
+CAUCHY_TUNING = 2.385
+
+#: Window of the first stage's multiple shooting (samples).
+FIRST_STAGE_WINDOW = 50
+
+#: ``first_stage="auto"`` keeps the first stage only when its noise-free simulation explains at
+#: least this share of ``y`` (robust R²): a simulation model.  Below it the process noise dominates.
+SIMULATION_R2_FLOOR = 0.5
+
+#: How much worse than the first stage's (robust scale of the training free-run errors) EM may
+#: leave the simulation before ``fit_Rw="auto"`` holds the process noise.
+SIMULATION_TOLERANCE = 1.1
+
+#: Draws of a jittered restart before the last one is taken even though its simulation diverges.
+JITTER_DRAWS = 20
+
+
+@dataclass
+class StartSettings:
+    """The estimator's settings that shape the start.
+
+    Attributes
+    ----------
+    first_stage : {"auto", "simulation", None}
+    n_iter : int
+        ``first_stage="auto"`` runs no first stage without EM (``n_iter=0`` evaluates a model).
+    n_runs : int
+        EM runs (``n_init``; 1 for a warm start).
+    init_jitter : float
+        Standard deviation of the restarts' log-normal factor.
+    random_state : int, RandomState or None
+        Seeds the runs (:func:`restart_seeds`).
+    warm : bool
+        A warm start: no first stage, and no warning about the start's simulation.
+    """
+
+    first_stage: str | None
+    n_iter: int
+    n_runs: int
+    init_jitter: float
+    random_state: Any
+    warm: bool = False
+
+
+@dataclass
+class Start:
+    """The planned start of a fit's EM runs.
+
+    Attributes
+    ----------
+    model : StateSpaceModel
+        Run 0's start: the first stage's result if it was kept, else the given model.
+    seeds : list of int
+        The seed of each run (:func:`restart_seeds`).
+    limit : float
+        How far a restart's simulation may go before it counts as diverging.
+    init_jitter : float
+    first_stage : FirstStageReport or None
+        What the first stage did (``None``: it did not run).
+    first_stage_unimproved : bool
+        ``first_stage="simulation"`` was asked and did not improve the start (EM starts from the
+        given values).
+    divergent_step : int or None
+        The step at which the start's own noise-free simulation leaves every finite bound.
+    staged : StateSpaceModel or None
+        A copy of the kept first stage's model (the start of the ``fit_Rw="auto"`` re-run).
+    staged_run : (Tensor, Tensor) or None
+        Noise-free ``(states, outputs)`` of the kept first stage's model.
+    """
+
+    model: StateSpaceModel
+    seeds: list[int]
+    limit: float
+    init_jitter: float
+    first_stage: FirstStageReport | None = None
+    first_stage_unimproved: bool = False
+    divergent_step: int | None = None
+    staged: StateSpaceModel | None = None
+    staged_run: tuple | None = field(default=None, repr=False)
+
+    def run_start(self, r: int, data: SequenceBatch, device: torch.device) -> tuple:
+        """EM run ``r``'s start, its particle generator and whether its simulation stays bounded:
+        run 0 from :attr:`model`, run ``r > 0`` from a jittered copy (:func:`stable_jitter`), all
+        randomness from ``seeds[r]``."""
+        seed = self.seeds[r]
+        rs = np.random.RandomState(seed)
+        if r == 0:  # the particle seed of a single fit, as before restarts existed
+            return copy_model(self.model), torch.Generator(device=device).manual_seed(seed), True
+        generator = seeded_generator(device, rs)
+        model, stable = stable_jitter(self.model, self.init_jitter, rs, data, self.limit)
+        return model, generator, stable
+
+    def held(self, Rw: torch.Tensor) -> Start:
+        """The start of the ``fit_Rw="auto"`` re-run: the first stage's model with ``Rw`` held."""
+        return replace(self, model=replace(self.staged, Rw=Rw))
+
+
+def plan_start(
+    model: StateSpaceModel, data: SequenceBatch, settings: StartSettings, *, restarts: bool = True
+) -> Start:
+    """The start of a fit's EM runs: the first stage (when it runs, and kept or not), the divergence
+    limit of the restarts and their seeds (``restarts=False``: neither, for a study's data set,
+    whose one run starts at :attr:`Start.model`)."""
+    start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
+    if runs_first_stage(model, settings):
+        start.first_stage, kept_run, start.model = first_stage_start(model, data, settings.first_stage)
+        start.first_stage_unimproved = not start.first_stage.accepted and settings.first_stage != "auto"
+        if kept_run is not None:
+            start.staged, start.staged_run = copy_model(start.model), kept_run
+    if restarts:
+        start.limit, start.divergent_step = divergence_limit(start.model, data, check=not settings.warm)
+        start.seeds = restart_seeds(settings.random_state, settings.n_runs)
+    return start
+
+
+def runs_first_stage(model: StateSpaceModel, settings: StartSettings) -> bool:
+    """Whether the first stage runs from ``model`` (``first_stage`` and, for ``"auto"``, the model)."""
+    if settings.warm:
+        return False
+    if settings.first_stage == "auto":  # a start for EM: none needed without EM (n_iter=0 evaluates a model)
+        return settings.n_iter > 0 and first_stage_applies(model)
+    return settings.first_stage == "simulation"
+
+
+def first_stage_start(
+    model: StateSpaceModel, data: SequenceBatch, mode: str
+) -> tuple[FirstStageReport, tuple | None, StateSpaceModel]:
+    """The robust simulation-error fit from ``model``: its report, the noise-free simulation
+    ``(states, outputs)`` of its result if that is kept (else ``None``), and EM's start."""
+    given = copy_model(model)
+    report = simulation_error_fit(model, data, segment_length=FIRST_STAGE_WINDOW)
+    if not report.accepted:
+        return report, None, given
+    starts = report.first_states[torch.as_tensor(first_windows(data, FIRST_STAGE_WINDOW))]
+    staged = replace(model, x0_mean=starts.mean(0))
+    run = prediction.free_run(staged, data.u)
+    report.explained = explained_share(run[1], data)
+    if keep_first_stage(report, mode):
+        return report, run, staged
+    report.accepted = False
+    report.first_states = None
+    return report, None, given
+
+
+def keep_first_stage(report: FirstStageReport, mode: str) -> bool:
+    """Whether EM starts from the first stage's result: always for ``"simulation"``; for ``"auto"``
+    when its simulation explains at least ``SIMULATION_R2_FLOOR`` of ``y``.  Below it the process
+    noise dominates ``y`` and a simulation-error fit is no guide to the parameters (the paper's
+    example: robust R² 0.47-0.65 at the true values, and the first stage can land in a wrong
+    basin), so EM starts from the given values."""
+    return mode != "auto" or report.explained >= SIMULATION_R2_FLOOR
+
+
+def explained_share(outputs: torch.Tensor, data: SequenceBatch) -> float:
+    """Robust R² of time-major ``outputs`` ``(T, B, p)`` against ``y``."""
+    yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+    return float(robust_r2_score(yt, torch.cat(data.unpad(outputs)).cpu().numpy()))
+
+
+def first_windows(data: SequenceBatch, window: int) -> list[int]:
+    """Index, among all windows, of each record's first window (as the first stage orders them)."""
+    out, i = [], 0
+    for n in data.lengths.tolist():
+        out.append(i)
+        i += sum(1 for s in range(0, n, window) if min(s + window, n) - s >= 2)
+    return out
+
+
+def divergence_limit(model: StateSpaceModel, data: SequenceBatch, check: bool) -> tuple[float, int | None]:
+    """How far a restart's simulation may go before it counts as diverging: 1e3 times the larger of
+    the start's own free-run range and the prior's scale.  With ``check``, also the step at which
+    the start's own simulation leaves every finite bound (1e6 times that scale; ``None``: it
+    does not)."""
+    states, _ = prediction.free_run(model, data.u[:1000])
+    finite = states[torch.isfinite(states)]
+    prior = float(model.x0_mean.abs().max() + model.x0_cov.diagonal().sqrt().max())
+    own = float(finite.abs().max()) if finite.numel() else 0.0
+    scale = max(1.0, prior, own if own < 1e6 else 0.0)
+    step = prediction.first_divergent_step(states, 1e6 * scale) if check else None
+    return 1e3 * scale, step
+
+
+def restart_seeds(random_state, n_runs: int) -> list[int]:
+    """The seed of each EM run: run 0 the estimator's own (the one its ``_generator()`` draws), run
+    ``r > 0`` the ``r``-th of a sequence drawn up front, so that run ``r`` depends on
+    ``random_state`` and ``r`` alone (not on how many draws the earlier restarts' jitter needed)."""
+    rs = check_random_state(random_state)
+    first = int(rs.randint(0, 2**31 - 1))
+    return [first] + [int(v) for v in rs.randint(0, 2**31 - 1, size=n_runs - 1)]
+
+
+def seeded_generator(device: torch.device, rs: np.random.RandomState) -> torch.Generator:
+    """A torch generator on ``device`` seeded by one draw of ``rs``."""
+    gen = torch.Generator(device=device)
+    gen.manual_seed(int(rs.randint(0, 2**31 - 1)))
+    return gen
+
+
+def copy_model(model: StateSpaceModel) -> StateSpaceModel:
+    """``model`` with copies of its modules (the tensors are not updated in place)."""
+    return replace(model, f=copy.deepcopy(model.f), g=copy.deepcopy(model.g))
+
+
+def stable_jitter(
+    base: StateSpaceModel, scale: float, rs: np.random.RandomState, data: SequenceBatch, limit: float
+) -> tuple[StateSpaceModel, bool]:
+    """A jittered restart whose noise-free simulation stays bounded, with ``g`` refitted to ``y``
+    (up to ``JITTER_DRAWS`` draws), and whether one was found (else: the last draw as drawn)."""
+    for _ in range(JITTER_DRAWS):
+        start = jittered(base, scale, rs)
+        if prediction.divergence(start, data.u, limit) is None:
+            return g_fitted_to_y(start, data), True
+    return start, False
+
+
+def jittered(model: StateSpaceModel, scale: float, rs: np.random.RandomState) -> StateSpaceModel:
+    """A copy whose free module parameters are multiplied by ``exp(scale * N(0, 1))``."""
+    new = copy_model(model)
+    with torch.no_grad():
+        for module in (new.f, new.g):
+            for p in module.parameters():
+                if p.requires_grad:
+                    eps = torch.from_numpy(rs.standard_normal(tuple(p.shape))).to(p)
+                    p.mul_(torch.exp(scale * eps))
+    return new
+
+
+@torch.no_grad()
+def g_fitted_to_y(model: StateSpaceModel, data: SequenceBatch, n_reweight: int = 3) -> StateSpaceModel:
+    """For a ``g`` linear in its parameters: its free parameters refitted to ``y`` along the noise-free
+    simulation of ``f`` (robust least squares, Cauchy weights), so that a restart's ``g`` has the
+    scale of the data whatever the jitter drew.  Other modules are left as drawn."""
+    g = model.g
+    if not isinstance(g, LinearInParameters) or not bool(g.free_mask().any()):
+        return model
+    states, _ = prediction.free_run(model, data.u)
+    mask = data.obs_mask  # (T, B, p)
+    x, u, y = states[mask.any(-1)], data.u[mask.any(-1)], data.y[mask.any(-1)]
+    m = mask[mask.any(-1)].to(y.dtype)
+    precision = torch.diag_embed(m)  # missing components carry no weight
+    weight = torch.ones(y.shape[0], dtype=y.dtype, device=y.device)
+    backup = copy.deepcopy(g.state_dict())
+    for _ in range(n_reweight + 1):
+        g.solve_weighted_least_squares(x, u, y, weight, precision)
+        r = torch.nan_to_num(y - g(x, u)) * m
+        size = r.abs().sum(-1)
+        scale = MAD_TO_STD * float(torch.median(size)) + 1e-300  # robust scale about 0
+        weight = 1.0 / (1.0 + (size / (CAUCHY_TUNING * scale)) ** 2)  # Cauchy IRLS weights
+    if not all(bool(torch.isfinite(p).all()) for p in g.parameters()):
+        g.load_state_dict(backup)
+    return model
+
+
+# --------------------------------------------------------------------------- after EM
+@dataclass
+class SimulationCheck:
+    """The comparison of the EM fit's noise-free simulation with the first stage's.
+
+    Attributes
+    ----------
+    before, after : float
+        Robust scale of the training free-run errors after the first stage and after EM.
+    outcome : {"kept", "worse", "held", "not better"}
+        ``"kept"``: EM simulates within ``SIMULATION_TOLERANCE`` of the first stage (or no
+        finite scale); ``"worse"``: it does not and ``fit_Rw`` is not ``"auto"`` (nothing rerun);
+        ``"held"``: EM ran again from the first stage with the process noise held and that fit
+        is kept; ``"not better"``: that re-run did not simulate better and the fit stays.
+    held_Rw : Tensor or None
+        The process noise of the re-run.
+    held_scale : float
+        Robust scale of the re-run's free-run errors (NaN without a re-run or a result).
+    """
+
+    before: float
+    after: float
+    outcome: str = "kept"
+    held_Rw: torch.Tensor | None = None
+    held_scale: float = math.nan
+
+
+def free_run_scale(outputs: torch.Tensor, data: SequenceBatch) -> float:
+    """Robust scale (1.4826 MAD about 0) of the free run's output errors on the observed samples."""
+    yt = torch.cat(data.unpad(data.y)).cpu().numpy()
+    err = (yt - torch.cat(data.unpad(outputs)).cpu().numpy())[np.isfinite(yt)]
+    return float(robust_scale(err, axis=None, center=0.0)) if err.size else math.nan
+
+
+def check_simulation(
+    start: Start, best, free_run_outputs: torch.Tensor, data: SequenceBatch, fit_Rw, rerun: Callable
+) -> tuple[SimulationCheck, Any, torch.Tensor]:
+    """Compare the EM fit ``best`` (an ``EMResult``; ``free_run_outputs``: its noise-free outputs)
+    with the kept first stage's simulation; under ``fit_Rw="auto"``, when EM made it more than
+    ``SIMULATION_TOLERANCE`` worse, ``rerun(start.held(Rw))`` (EM with the process noise held)
+    and keep the run that simulates better.  Returns the check, the kept run and its outputs;
+    ``start.first_stage`` records the scales."""
+    before = free_run_scale(start.staged_run[1], data)
+    after = free_run_scale(free_run_outputs, data)
+    start.first_stage.free_run_scale_before_em = before
+    start.first_stage.free_run_scale_after_em = after
+    check = SimulationCheck(before, after)
+    if not (np.isfinite(after) and after > SIMULATION_TOLERANCE * before):
+        return check, best, free_run_outputs
+    if fit_Rw != "auto":
+        check.outcome = "worse"
+        return check, best, free_run_outputs
+    check.held_Rw = held_process_noise(start.staged_run[0], data)
+    held = rerun(start.held(check.held_Rw))
+    outputs = prediction.free_run(held.model, data.u)[1] if held.estep is not None else None
+    check.held_scale = free_run_scale(outputs, data) if outputs is not None else math.nan
+    if held.error is not None or not np.isfinite(check.held_scale) or check.held_scale >= after:
+        check.outcome = "not better"
+        return check, best, free_run_outputs
+    check.outcome = "held"
+    start.first_stage.free_run_scale_after_em = check.held_scale
+    return check, held, outputs
