@@ -48,20 +48,20 @@ class CompareResult:
     excluded: np.ndarray | list | None = None
 
     def summary(self) -> str:
-        """One line per record: the fit of each output and what was predicted."""
-        what = "simulation (free run)" if self.horizon is None else f"{self.horizon}-step-ahead prediction"
+        """One line per record: what was predicted and the fit of each output."""
+        what = "free-run simulation" if self.horizon is None else f"{self.horizon}-step-ahead prediction"
         fits = np.atleast_2d(self.fit)
         excluded = self.excluded if isinstance(self.excluded, list) else [self.excluded] * len(fits)
         lines = []
         for r, row in enumerate(fits):
-            head = f"record {r}: " if len(fits) > 1 else ""
+            head = f"record {r}, " if len(fits) > 1 else ""
             outputs = ", ".join(
-                f"{v:.1f} %" if len(row) == 1 else f"output {j}: {v:.1f} %" for j, v in enumerate(row)
+                f"{v:.1f} %" if len(row) == 1 else f"{v:.1f} % (output {j})" for j, v in enumerate(row)
             )
             tail = ""
             if self.robust != "none" and excluded[r] is not None:
-                tail = f" ({int(np.sum(excluded[r]))} samples with {self.robust} left out)"
-            lines.append(f"{head}fit {outputs} ({what}){tail}")
+                tail = f"; {int(np.sum(excluded[r]))} samples with {self.robust} left out"
+            lines.append(f"{head}{what}: fit {outputs}{tail}")
         return "\n".join(lines)
 
     def __str__(self) -> str:

@@ -307,3 +307,56 @@ def test_a_neural_ode_through_the_wrapper():
     assert error < 0.05  # relative RMS error of the increments
     with pytest.raises(TypeError, match="fit_normalisation"):
         reference.fit_normalisation(x.numpy())
+
+
+def test_warm_start_of_a_neural_ode():
+    """warm_start_estimator sets the MLP derivative's normalisation through the wrapper and distils
+    the transition from the reference linear model."""
+    from torch_nssm import warm_start_estimator
+    from torch_nssm.datasets import make_paper_example
+    from torch_nssm.models import PaperObservation
+
+    data = make_paper_example(n_samples=150, random_state=0)
+    f = ContinuousTimeTransition(MLPDerivative(1, 1, hidden=(8,), random_state=0), 1.0)
+    est = RobustNSSMEstimator(f, PaperObservation(1.0), x0_mean=[0.0], n_particles=30, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        warm, info = warm_start_estimator(est, data.u, data.y, n_iter=3, distill_iter=100, return_info=True)
+    assert info.f_action == "distilled" and info.f_error < 0.1
+    assert warm.f.rhs.out_scale.item() != 1.0  # the increments' scale, not the default
+    assert est.f.rhs.out_scale.item() == 1.0  # the user's module is not changed
+
+
+# the README's example ("Continuous-time models"), as written there
+class Pendulum(nn.Module):  # dx/dt = F(x, u), x = [angle, angular velocity]
+    def __init__(self, w2=5.0, c=0.5, b=1.0):
+        super().__init__()
+        self.w2, self.c, self.b = (nn.Parameter(torch.tensor(v)) for v in (w2, c, b))
+
+    def forward(self, x, u):
+        angle, omega = x[..., 0], x[..., 1]
+        return torch.stack([omega, -self.w2 * torch.sin(angle) - self.c * omega + self.b * u[..., 0]], -1)
+
+
+def test_the_readme_pendulum_recovers_its_physical_parameters():
+    """Simulated in continuous time (exact ODE solution, a random torque, a noisy angle sensor with
+    glitches), fitted through RK4: each physical parameter within 3 standard errors of the truth, and
+    the standard errors small enough for that to mean something."""
+    from torch_nssm.datasets import make_pendulum
+
+    data = make_pendulum(random_state=0)  # 300 samples of the angle, Ts = 0.05 s, 2.5 % glitches
+    f = ContinuousTimeTransition(Pendulum(), Ts=0.05)  # RK4 over each sample, u held
+    g = LinearObservation(2, 1, 1, C=[[1.0, 0.0]], fit_offset=False).requires_grad_(False)  # y = angle
+    n = torch.get_num_threads()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # ConvergenceWarning after 25 iterations
+        est = RobustNSSMEstimator(
+            f, g, x0_mean=[0.0, 0.0], fit_Rw=True, n_particles=50, n_iter=25, random_state=0
+        ).fit(data.u, data.y)
+        se = est.standard_errors_
+    assert torch.get_num_threads() == n
+    for name in ("w2", "c", "b"):
+        value, truth, error = getattr(est.f_.rhs, name).item(), data.params[name], se[f"f.rhs.{name}"]
+        assert abs(value - truth) < 3 * error, (name, value, truth, error)
+        assert error < 0.5 * truth, (name, error)
+    assert se["f.rhs.w2"] < 0.1 * data.params["w2"]

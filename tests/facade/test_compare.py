@@ -69,7 +69,8 @@ def test_compare_is_predict_and_fit_percent(fitted):
     np.testing.assert_allclose(k_step.y_pred, est.predict(data.u, data.y, horizon=1, random_state=3))
     np.testing.assert_allclose(k_step.fit, fit_percent(data.y, k_step.y_pred))
     assert k_step.fit[0] > result.fit[0]  # the one-step predictions follow the measured outputs
-    assert "%" in str(result) and "free run" in str(result) and "1-step" in str(k_step)
+    assert str(result) == f"free-run simulation: fit {result.fit[0]:.1f} %"
+    assert str(k_step).startswith("1-step-ahead prediction: fit")
 
 
 def test_robust_compare_leaves_out_the_outliers(fitted):
@@ -94,7 +95,7 @@ def test_compare_of_records(fitted):
     result = est.compare([data.u, other.u], [data.y, other.y])
     assert result.fit.shape == (2, 1) and isinstance(result.y_pred, list)
     np.testing.assert_allclose(result.fit[1], est.compare(other.u, other.y).fit)
-    assert str(result).startswith("record 0: fit")
+    assert str(result).splitlines()[1].startswith("record 1, free-run simulation: fit")
 
 
 def test_plot_compare(fitted):

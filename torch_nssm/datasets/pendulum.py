@@ -25,7 +25,7 @@ PENDULUM_TS = 0.05
 
 
 def make_pendulum(
-    n_samples: int = 400,
+    n_samples: int = 300,
     *,
     Ts: float = PENDULUM_TS,
     w2: float = PENDULUM_PARAMS["w2"],
@@ -33,7 +33,7 @@ def make_pendulum(
     b: float = PENDULUM_PARAMS["b"],
     input_amplitude: float = 1.5,
     hold: int = 10,
-    process_noise: float = 1e-2,
+    process_noise: float = 1e-3,
     noise_std: float = 0.02,
     outlier_fraction: float = 0.025,
     outlier_range: tuple[float, float] = (0.5, 1.0),
@@ -43,7 +43,7 @@ def make_pendulum(
 
     Parameters
     ----------
-    n_samples : int, default=400
+    n_samples : int, default=300
     Ts : float, default=0.05
         Sample time (s).
     w2, c, b : float
@@ -52,7 +52,7 @@ def make_pendulum(
         The input is uniform on ``[-input_amplitude, input_amplitude]``, ...
     hold : int, default=10
         ... a new value every ``hold`` samples.
-    process_noise : float, default=1e-2
+    process_noise : float, default=1e-3
         Variance of the random torque's effect on the angular velocity per sample ((rad/s)²).
     noise_std : float, default=0.02
         Standard deviation of the angle sensor's noise (rad).
