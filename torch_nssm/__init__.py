@@ -16,6 +16,7 @@ import importlib
 __all__ = [
     "RobustNSSMEstimator",
     "LinearInParameters",
+    "ContinuousTimeTransition",
     "StateEstimate",
     "NumericalError",
     "fit_independent",
@@ -34,6 +35,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "RobustNSSMEstimator": (".estimator", "RobustNSSMEstimator"),
     "LinearInParameters": (".core.parametric", "LinearInParameters"),
+    "ContinuousTimeTransition": (".blocks.continuous", "ContinuousTimeTransition"),
     "StateEstimate": (".inference.results", "StateEstimate"),
     "NumericalError": (".inference.filtering", "NumericalError"),
     "fit_independent": (".estimator", "fit_independent"),

@@ -671,6 +671,16 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         options = dict(max_lag=max_lag, horizon=horizon, level=level, robust=robust)
         return residual_analysis(self, u, y, random_state=random_state, **options)
 
+    def compare(self, u, y, *, horizon: int | None = None, x0=None, robust: bool = False, random_state=None):
+        """The predicted outputs of a record beside the measured ones, with the fit in percent per
+        output, as MATLAB's ``compare`` (:func:`torch_nssm.evaluation.compare`;
+        ``plotting.plot_compare`` draws it).  ``robust=True`` leaves out the samples flagged as
+        outliers (smoothed outlier weight below 0.5)."""
+        from .evaluation import compare
+
+        options = dict(horizon=horizon, x0=x0, robust=robust, random_state=random_state)
+        return compare(self, u, y, **options)
+
     @with_thread_limit
     def initial_state(self, u, y, *, random_state=None):
         """The first state of a new record, estimated from its first outputs.

@@ -35,6 +35,7 @@ from .. import _validation as V
 from .._stats import robust_scale
 from ..core.noise import NOISE_MODELS
 from ..estimator import RobustNSSMEstimator
+from .continuous import ContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import GreyBoxTransition, MLPObservation, MLPTransition
 
@@ -498,7 +499,8 @@ def _transition(f, action: str, reference, x_now, u_now, x_next, X, U, distill_i
         f_new.physical.load_state_dict(reference.f_.state_dict())
         f_new.fit_normalisation(x_now, u_now, x_next=x_next)
     elif action == "distilled":
-        if isinstance(f_new, (MLPTransition, GreyBoxTransition)):
+        neural_ode = isinstance(f_new, ContinuousTimeTransition) and hasattr(f_new.rhs, "fit_normalisation")
+        if isinstance(f_new, (MLPTransition, GreyBoxTransition)) or neural_ode:
             f_new.fit_normalisation(x_now, u_now, x_next=x_next)
         f_error = distill(f_new, reference.f_, X, U, baseline=X, max_iter=distill_iter)
     return f_new, f_error
