@@ -343,9 +343,9 @@ def test_the_readme_pendulum_recovers_its_physical_parameters():
     glitches), fitted through RK4 with the estimator's defaults (fewer particles and iterations):
     each physical parameter within 3 standard errors of the truth, and the standard errors small
     enough for that to mean something (measured: within 0.83 of them on seeds 0-3)."""
-    from torch_nssm.datasets import make_pendulum
+    from torch_nssm.datasets import make_continuous_pendulum
 
-    data = make_pendulum(random_state=0)  # 300 samples of the angle, Ts = 0.05 s, 2.5 % glitches
+    data = make_continuous_pendulum(random_state=0)  # 300 samples of the angle, Ts = 0.05 s, 2.5 % glitches
     f = ContinuousTimeTransition(Pendulum(), Ts=0.05)  # RK4 over each sample, u held
     g = LinearObservation(2, 1, 1, C=[[1.0, 0.0]], fit_offset=False).requires_grad_(False)  # y = angle
     n = torch.get_num_threads()

@@ -11,7 +11,7 @@ Every generator draws from ``np.random.default_rng(random_state)`` and returns a
 * :mod:`~torch_nssm.datasets.two_sensors` -- a 2-output linear system whose first sensor
   glitches: :func:`make_two_sensor_example` (the per-output noise's example).
 * :mod:`~torch_nssm.datasets.pendulum` -- a torque-driven pendulum simulated in continuous time:
-  :func:`make_pendulum` (the continuous-time models' example).
+  :func:`make_continuous_pendulum` (the continuous-time models' example).
 
 Each module also holds its system's ready-made ``f`` / ``g`` (collected in :mod:`torch_nssm.models`).
 The Silverbox loader lives with its case study in ``examples/silverbox``.
@@ -43,14 +43,14 @@ from .manipulator import (
     manipulator_transition_matrix,
 )
 from .paper import PAPER_X0_COV, make_gopaluni_example, make_huang_example, make_paper_example
-from .pendulum import PENDULUM_PARAMS, PENDULUM_TS, make_pendulum
+from .continuous_pendulum import CT_PENDULUM_PARAMS, CT_PENDULUM_TS, make_continuous_pendulum
 from .two_sensors import make_two_sensor_example
 
 __all__ = [
     "make_two_sensor_example",
-    "make_pendulum",
-    "PENDULUM_PARAMS",
-    "PENDULUM_TS",
+    "make_continuous_pendulum",
+    "CT_PENDULUM_PARAMS",
+    "CT_PENDULUM_TS",
     "SimulatedData",
     "ManipulatorConstants",
     "make_paper_example",

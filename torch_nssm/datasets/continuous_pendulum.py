@@ -16,21 +16,21 @@ from scipy.integrate import solve_ivp
 from .. import _validation as V
 from ._base import SimulatedData, _add_outliers, _to_list
 
-__all__ = ["make_pendulum", "PENDULUM_PARAMS", "PENDULUM_TS"]
+__all__ = ["make_continuous_pendulum", "CT_PENDULUM_PARAMS", "CT_PENDULUM_TS"]
 
-#: True physical parameters of :func:`make_pendulum`.
-PENDULUM_PARAMS = {"w2": 4.0, "c": 0.3, "b": 2.0}
+#: True physical parameters of :func:`make_continuous_pendulum`.
+CT_PENDULUM_PARAMS = {"w2": 4.0, "c": 0.3, "b": 2.0}
 #: Sample time (s).
-PENDULUM_TS = 0.05
+CT_PENDULUM_TS = 0.05
 
 
-def make_pendulum(
+def make_continuous_pendulum(
     n_samples: int = 300,
     *,
-    Ts: float = PENDULUM_TS,
-    w2: float = PENDULUM_PARAMS["w2"],
-    c: float = PENDULUM_PARAMS["c"],
-    b: float = PENDULUM_PARAMS["b"],
+    Ts: float = CT_PENDULUM_TS,
+    w2: float = CT_PENDULUM_PARAMS["w2"],
+    c: float = CT_PENDULUM_PARAMS["c"],
+    b: float = CT_PENDULUM_PARAMS["b"],
     input_amplitude: float = 1.5,
     hold: int = 10,
     process_noise: float = 1e-3,
@@ -47,7 +47,7 @@ def make_pendulum(
     Ts : float, default=0.05
         Sample time (s).
     w2, c, b : float
-        Physical parameters (default :data:`PENDULUM_PARAMS`).
+        Physical parameters (default :data:`CT_PENDULUM_PARAMS`).
     input_amplitude : float, default=1.5
         The input is uniform on ``[-input_amplitude, input_amplitude]``, ...
     hold : int, default=10
