@@ -26,7 +26,7 @@ from . import _validation as V
 from ._stats import MAD_TO_STD, robust_scale
 from ._threads import limited_threads, with_thread_limit
 from .core.model import SequenceBatch, StateSpaceModel
-from .core.noise import NOISE_MODELS, get_noise_model, symmetric_pd
+from .core.noise import NOISE_SHORTCUTS, MeasurementNoise, NoiseSpec, noise_spec, symmetric_pd
 from .core.parametric import LinearInParameters
 from .estimation.estep import EStepOptions, e_step, latent_scales, outlier_weights
 from .estimation.first_stage import first_stage_applies, held_process_noise, simulation_error_fit
@@ -78,16 +78,22 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Initial measurement-noise scale matrix; ``0.02 * diag(s^2)`` if omitted, ``s`` a robust
         spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
     dof_init : float, default=5.0
-        Initial degrees of freedom of the Student-t noise.
-    noise : {"student-t", "gaussian", "student-t-per-output"}, default="student-t"
-        Measurement-noise model: the multivariate Student-t (one outlier weight per sample),
-        ``"gaussian"`` (the non-robust baseline, Gopaluni 2008), or ``"student-t-per-output"``
-        (independent t per output with diagonal ``Rv`` and one ``dof`` per output: a glitch in one
-        sensor down-weights only that sensor).
+        Initial degrees of freedom of the Student-t noise (one per output, or one for all, for
+        ``"student-t-per-output"``): a shortcut for the family's option, see ``noise``.
+    noise : str or noise specification, default="student-t"
+        Measurement-noise model (docs/noise_models.md): ``"student-t"``, the multivariate Student-t
+        (one outlier weight per sample); ``"gaussian"`` (the non-robust baseline, Gopaluni 2008);
+        ``"student-t-per-output"`` (independent t per output with diagonal ``Rv`` and one ``dof``
+        per output: a glitch in one sensor down-weights only that sensor); or a family registered
+        with :func:`torch_nssm.noise.register_noise_model`.  A name takes its options from the
+        shortcuts ``dof_init``, ``fit_dof`` and ``dof_bounds`` (families without degrees of
+        freedom ignore them).  Or a specification object with its options, e.g.
+        ``torch_nssm.noise.StudentT(dof=3.0, fit_dof=False)``, ``StudentTPerOutput(...)``,
+        ``Gaussian()``; the shortcuts must then keep their defaults (``ValueError`` otherwise).
     fit_dof : bool, default=True
-        Estimate the DOF; if False it stays at ``dof_init``.
+        Estimate the DOF; if False it stays at ``dof_init`` (a shortcut, see ``noise``).
     dof_bounds : (float, float), default=(0.1, 1000.0)
-        Bracket of the DOF root-solve.
+        Bracket of the DOF root-solve (a shortcut, see ``noise``).
     fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
         the physics, or for a simulation model).  ``"auto"``: estimate it, but when the first
@@ -206,7 +212,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
     Rw_ : ndarray of shape (nx, nx)
     Rv_ : ndarray of shape (p, p)
     dof_ : float, or ndarray of shape (p,)
-        ``inf`` for Gaussian noise; one per output for ``"student-t-per-output"``.
+        ``inf`` for Gaussian noise; one per output for ``"student-t-per-output"``.  Each parameter
+        of the noise family is a fitted attribute ``<name>_`` (``Rv_``, ``dof_``, ...).
     x0_mean_ : ndarray of shape (nx,)
     x0_cov_ : ndarray of shape (nx, nx)
     history_ : dict of str to ndarray
@@ -254,7 +261,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         Rw_init=None,
         Rv_init=None,
         dof_init: float = 5.0,
-        noise: str = "student-t",
+        noise: str | NoiseSpec = "student-t",
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
         fit_Rw: bool | str = "auto",
@@ -392,7 +399,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
 
     # ------------------------------------------------------------------ checks and set-up
     def _check_params(self) -> torch.device:
-        V.check_choice(self.noise, "noise", sorted(NOISE_MODELS))
+        self._noise_spec()
         V.check_choice(self.optimizer, "optimizer", sorted(SOLVERS))
         V.check_choice(self.smoother, "smoother", sorted(SMOOTHERS))
         if self.first_stage is not None:
@@ -421,17 +428,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         V.check_positive(self.learning_rate, "learning_rate")
         if self.batch_size is not None:
             V.check_positive(self.batch_size, "batch_size", integer=True, minimum=1, inclusive=True)
-        V.check_positive(self.dof_init, "dof_init")
         if not isinstance(self.warm_start, (bool, np.bool_)):
             raise TypeError(f"warm_start must be True or False, got {self.warm_start!r}")
         if not (isinstance(self.ess_threshold, (int, float)) and 0 <= self.ess_threshold <= 1):
             raise ValueError(f"ess_threshold must lie in [0, 1], got {self.ess_threshold!r}")
-        try:
-            lo, hi = (float(b) for b in self.dof_bounds)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"dof_bounds must be a pair (low, high), got {self.dof_bounds!r}") from exc
-        if not 0 < lo < hi:
-            raise ValueError(f"dof_bounds must satisfy 0 < low < high, got {self.dof_bounds!r}")
         if self.chunk_size is not None:
             V.check_positive(self.chunk_size, "chunk_size", integer=True, minimum=1, inclusive=True)
         if self.segment_length is not None:
@@ -467,6 +467,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 )
         return V.check_device(self.device)
 
+    def _noise_spec(self) -> NoiseSpec:
+        """The measurement noise's specification: ``noise``, with the shortcut parameters forwarded
+        to its family (:func:`~torch_nssm.core.noise.noise_spec`)."""
+        return noise_spec(self.noise, **{name: getattr(self, name) for name in NOISE_SHORTCUTS})
+
     def _generator(self, device: torch.device, random_state=None) -> torch.Generator:
         rs = check_random_state(self.random_state if random_state is None else random_state)
         return _seeded_generator(device, rs)
@@ -494,7 +499,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         g = copy.deepcopy(self.g).to(**kw)
         _check_data_against_model(data, f, g, nu, p)
         V.check_module_shapes(f, g, nx, nu, p, **kw)
-        noise = get_noise_model(self.noise).initial(Rv, float(self.dof_init))
+        noise = self._noise_spec().initial(Rv)
         return StateSpaceModel(f, g, Rw, noise, x0_mean, x0_cov)
 
     def _em_options(self, progress: str | None = None, *, fit_Rw: bool | None = None) -> EMOptions:
@@ -525,8 +530,6 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                     batch_size=self.batch_size,
                     generator=self._generator(torch.device("cpu")),
                 ),
-                fit_dof=bool(self.fit_dof),
-                dof_bounds=tuple(float(b) for b in self.dof_bounds),
                 fit_x0=bool(self.fit_x0),
                 fit_Rw=bool(self.fit_Rw) if fit_Rw is None else fit_Rw,
                 fit_Rv=bool(self.fit_Rv),
@@ -635,7 +638,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         message = self._rejection_message(best)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
-        message = _noise_absorbing_message(self.dof_, self.outlier_weights_)
+        message = best.model.noise.absorption_message(self.outlier_weights_)
         if message:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
         explained, simulated = _explained_fraction(best, data, free_run_outputs)
@@ -802,16 +805,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         self.f_ = model.f
         self.g_ = model.g
         self.Rw_ = model.Rw.detach().cpu().numpy()
-        self.Rv_ = model.Rv.detach().cpu().numpy()
-        dof = getattr(model.noise, "dof", None)
-        if dof is None:
-            self.dof_ = math.inf
-        else:
-            self.dof_ = float(dof) if dof.dim() == 0 else dof.detach().cpu().numpy()
+        noise = model.noise.attributes()  # Rv_, dof_, ...: the noise family's
+        for name in set(self.__dict__.get("_noise_attributes", ())) - set(noise):
+            self.__dict__.pop(f"{name}_", None)  # another family's, from an earlier fit
+        for name, value in noise.items():
+            setattr(self, f"{name}_", value)
+        self._noise_attributes = tuple(noise)
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
-        ow = outlier_weights(est.smoother.log_weights, est.e_lam, data)
+        per_component = model.noise.per_component
+        ow = outlier_weights(est.smoother.log_weights, est.e_lam, data, per_component=per_component)
         self.outlier_weights_ = ow if multi else ow[0]
         self.log_likelihood_ = float(est.log_likelihood.sum())
         self.n_iter_ = n_done
@@ -845,7 +849,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 est = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
                     model, data, est, fit_Rw=self._fitted_Rw(), fit_Rv=bool(self.fit_Rv),
-                    fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
+                    generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
         for message in self._uncertainty.warnings() if warn else ():
@@ -908,13 +912,11 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         (see :meth:`_initial_states`)."""
         kw = dict(dtype=self.dtype, device=device)
         t = lambda a: torch.as_tensor(a, **kw)  # noqa: E731
-        family = get_noise_model(self.noise)
-        noise = family(**{name: t(getattr(self, f"{name}_")) for name in family.CORE_DIMS})
         model = StateSpaceModel(
             copy.deepcopy(self.f_).to(**kw),
             copy.deepcopy(self.g_).to(**kw),
             t(self.Rw_),
-            noise,
+            self._fitted_noise(device),
             t(self.x0_mean_),
             t(self.x0_cov_),
         )
@@ -922,6 +924,14 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             return model
         mean, cov = self._initial_states(model, data, x0, random_state)
         return replace(model, x0_mean=mean, x0_cov=cov)
+
+    def _fitted_noise(self, device="cpu") -> MeasurementNoise:
+        """The fitted measurement noise on ``device``: its family's parameters from the fitted
+        attributes ``<name>_``."""
+        spec = self._noise_spec()
+        kw = dict(dtype=self.dtype, device=device)
+        names = spec.noise_model.CORE_DIMS
+        return spec.state(**{n: torch.as_tensor(getattr(self, f"{n}_"), **kw) for n in names})
 
     def _initial_states(self, model: StateSpaceModel, data: SequenceBatch, x0, random_state=None) -> tuple:
         """Prior mean and covariance of the first state of each record of ``data`` for ``x0``:
@@ -1139,7 +1149,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         else:
             filt = self._filter(model, data, gen)
             log_w, e_lam = filt.log_weights, latent_scales(model, data, filt)[0]
-        ow = outlier_weights(log_w, e_lam, data)
+        ow = outlier_weights(log_w, e_lam, data, per_component=model.noise.per_component)
         mean, cov = smoothed_moments(filt.particles, log_w)
         out = []
         for b, n in enumerate(data.lengths.tolist()):
@@ -1503,31 +1513,6 @@ def _first_windows(data: SequenceBatch, window: int) -> list[int]:
 #: Samples of a new record from which ``x0="estimate"`` / :meth:`RobustNSSMEstimator.initial_state`
 #: estimate its first state.
 INITIAL_SAMPLES = 50
-
-#: A fitted dof below this (tails heavier than Cauchy's), or more than DOWNWEIGHTED_SHARE of the
-#: samples with an outlier weight below 0.5, is reported: the noise model may be absorbing model
-#: error (genuinely Cauchy noise down-weights about a third of the samples).
-DOF_FLOOR = 1.0
-DOWNWEIGHTED_SHARE = 0.4
-
-
-def _noise_absorbing_message(dof, weights) -> str | None:
-    """Words for a fit whose noise model explains too much (``None`` if it does not)."""
-    ws = weights if isinstance(weights, list) else [weights]
-    w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
-    w = w[np.isfinite(w)]
-    share = float(np.mean(w < 0.5)) if w.size else 0.0
-    low = np.min(np.atleast_1d(dof)) < DOF_FLOOR
-    if not low and share <= DOWNWEIGHTED_SHARE:
-        return None
-    return (
-        f"the measurement noise absorbs much of the data: dof {np.round(np.atleast_1d(dof), 2).tolist()}, "
-        f"{100 * share:.0f} % of the samples have an outlier weight below 0.5. Unless the sensor "
-        "noise really is that heavy-tailed, the noise model is absorbing what f and g cannot explain "
-        "(model error, not outliers): check the residuals (torch_nssm.diagnostics), raise the lower "
-        "dof bound (dof_bounds=(2.0, 1000.0)) or hold it (fit_dof=False), or improve the model"
-    )
-
 
 #: Below this robust R² of the smoothed outputs against ``y``, a fit is reported as explaining nothing.
 EXPLAINED_FLOOR = 0.05

@@ -350,7 +350,10 @@ def make_manipulator(
     Rw_m = V.check_covariance_array(Rw, "Rw", 4)
     Rv_m = V.check_covariance_array(Rv, "Rv", 2)
     noise = V.check_choice(noise, "noise", NOISE_KINDS)
-    nu_dof = math.inf if noise == "gaussian" else V.check_real(dof, "dof", low=0.0, low_open=True)
+    nu_dof = (
+        math.inf if noise == "gaussian"
+        else V.check_real(dof, "dof", low=0.0, high=math.inf, low_open=True, high_open=True)
+    )
     m0 = V.check_vector_array(x0_mean, "x0_mean", 4)
     P0 = V.check_covariance_array(x0_cov, "x0_cov", 4)
     if constants is None:
@@ -376,7 +379,7 @@ def make_manipulator(
     w = rng.standard_normal((n, 4)) @ _cov_sqrt(Rw_m).T
     for k in range(n - 1):
         x[k + 1] = _manipulator_mean(x[k], force[k], dt, th, blocks) + w[k]
-    v = _measurement_noise(rng, n, Rv_m, nu_dof)
+    v = _measurement_noise(rng, n, Rv_m, noise, dof_init=nu_dof)
     y_clean = x[:, 2:] + v
     y, mask = _add_outliers(rng, y_clean, fraction, rng_out)
     params = {

@@ -236,7 +236,7 @@ def run_em(
     snapshots: dict[int, tuple] = {}
     accelerating = options.acceleration == "newton" and shared and options.estep.segment_length is None
     previous_step, max_factor = None, MAX_FACTOR  # the last Newton step taken, the cap of the next
-    extrapolation = NoiseExtrapolation(options.mstep.dof_bounds, n_obs[0]) if accelerating else None
+    extrapolation = NoiseExtrapolation(n_obs[0]) if accelerating else None
     if accelerating:
         histories[0]["accelerated"] = []
     bar = _progress_bar(options.n_iter, options.progress)
@@ -340,9 +340,9 @@ def run_em(
             if shared and active:
                 ll = float(last[0][0].log_likelihood.sum())
                 postfix = {"loglik": f"{ll / max(n_obs[0], 1):.4f}/obs"}
-                dof = getattr(models[0].noise, "dof", None)
-                if dof is not None and dof.dim() == 0:
-                    postfix["dof"] = f"{float(dof):.3g}"
+                for name, value in models[0].noise.parameters().items():  # its scalar parameters
+                    if value.dim() == 0:
+                        postfix[name] = f"{float(value):.3g}"
                 bar.set_postfix(postfix)
     except KeyboardInterrupt:
         # Ctrl-C: every group keeps its last completed iteration (an interrupted M-step is undone)
