@@ -42,7 +42,9 @@ def _arrays(value):
 def _fit_summary(est, se: bool = True) -> dict:
     out = {name: _arrays(getattr(est, name, None)) for name in FITTED}
     out["modules"] = {
-        f"{label}.{n}": p.detach().cpu().numpy() for label in ("f", "g") for n, p in getattr(est, f"{label}_").named_parameters()
+        f"{label}.{n}": p.detach().cpu().numpy()
+        for label in ("f", "g")
+        for n, p in getattr(est, f"{label}_").named_parameters()
     }
     out["history"] = {k: np.asarray(v) for k, v in est.history_.items()}
     if se:
@@ -139,7 +141,7 @@ def run() -> dict:
 def _equal(a, b, path="") -> list[str]:
     if isinstance(a, dict):
         if not isinstance(b, dict) or set(a) != set(b):
-            return [f"{path}: keys {sorted(a) if isinstance(a, dict) else a} != {sorted(b) if isinstance(b, dict) else b}"]
+            return [f"{path}: keys {sorted(a)} != {sorted(b) if isinstance(b, dict) else b}"]
         return [m for k in a for m in _equal(a[k], b[k], f"{path}/{k}")]
     if isinstance(a, (list, tuple)) and not isinstance(a, str):
         if not isinstance(b, (list, tuple)) or len(a) != len(b):
@@ -154,7 +156,8 @@ def _equal(a, b, path="") -> list[str]:
         same = np.array_equal(x, y, equal_nan=True)
     else:
         same = np.array_equal(x, y)
-    return [] if same else [f"{path}: differ (max |diff| {np.nanmax(np.abs(x - y)) if x.dtype.kind in 'fc' else '-'})"]
+    gap = np.nanmax(np.abs(x - y)) if x.dtype.kind in "fc" else "-"
+    return [] if same else [f"{path}: differ (max |diff| {gap})"]
 
 
 def main(argv=None) -> int:
