@@ -233,7 +233,6 @@ class StudentT(NoiseSpec):
     def initial(self, Rv: Tensor) -> StudentTNoise:
         return StudentTNoise.initial(Rv, self.dof, spec=self)
 
-
     def starting_at(self, noise: StudentTNoise) -> StudentT:
         return dataclasses.replace(self, dof=float(noise.dof))
 

@@ -82,7 +82,6 @@ class StudentTPerOutput(NoiseSpec):
     def initial(self, Rv: Tensor) -> StudentTPerOutputNoise:
         return StudentTPerOutputNoise.initial(Rv, self.dof, spec=self)
 
-
     def starting_at(self, noise: StudentTPerOutputNoise) -> StudentTPerOutput:
         return dataclasses.replace(self, dof=tuple(float(d) for d in noise.dof.reshape(-1)))
 
