@@ -42,7 +42,7 @@ _NOT_DRAWN = ("log_likelihood", "x0_mean", "accelerated")
 
 def _default_params(history: Mapping[str, np.ndarray]) -> list[str]:
     """``f``'s and ``g``'s parameters, ``Rw``, ``Rv``, then the noise family's other parameters
-    whose trajectory is finite (not a Gaussian's ``dof = inf``)."""
+    whose trajectory is finite (one held at ``inf`` is not drawn)."""
     names = [k for k in history if k.startswith(("f.", "g."))]
     names += [k for k in ("Rw", "Rv") if k in history]
     names += [

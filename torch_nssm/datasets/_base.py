@@ -22,7 +22,7 @@ from ..core.noise.base import psd_sqrt
 
 __all__ = ["SimulatedData"]
 
-#: The measurement-noise families a simulated record can have (the registered ones).
+#: The measurement-noise families a simulated record can have (those registered with the package).
 NOISE_KINDS = tuple(NOISE_MODELS)
 
 ArrayLike = Union[float, Sequence[float], Sequence[Sequence[float]], np.ndarray]
