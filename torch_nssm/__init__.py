@@ -26,6 +26,7 @@ __all__ = [
     "diagnostics",
     "models",
     "neural",
+    "noise",
     "plotting",
     "warm_start",
 ]
@@ -45,6 +46,7 @@ _LAZY = {
     "diagnostics": (".diagnostics", None),
     "models": (".models", None),
     "neural": (".neural", None),
+    "noise": (".noise", None),
     "plotting": (".plotting", None),
     "warm_start": (".warm_start", None),
 }

@@ -39,11 +39,20 @@ def _history(est) -> Mapping[str, np.ndarray]:
     return history
 
 
+#: Keys of ``history_`` that are not parameters of the model (or not drawn by default).
+_NOT_DRAWN = ("log_likelihood", "x0_mean", "accelerated")
+
+
 def _default_params(history: Mapping[str, np.ndarray]) -> list[str]:
+    """``f``'s and ``g``'s parameters, ``Rw``, ``Rv``, then the noise family's other parameters
+    whose trajectory is finite (one held at ``inf`` is not drawn)."""
     names = [k for k in history if k.startswith(("f.", "g."))]
     names += [k for k in ("Rw", "Rv") if k in history]
-    if "dof" in history and np.all(np.isfinite(history["dof"])):
-        names.append("dof")
+    names += [
+        k for k in history
+        if k not in names and k not in _NOT_DRAWN and not k.startswith("rejected.")
+        and np.all(np.isfinite(np.asarray(history[k], dtype=float)))
+    ]
     return names
 
 
@@ -104,8 +113,8 @@ def plot_history(est, params=None, true_values=None, ax=None):
         A fitted estimator, or its ``history_``.
     params : str or list of str, optional
         Keys of ``history_`` to draw, e.g. ``["f.a", "g.c", "Rv", "dof", "log_likelihood"]``;
-        default: every parameter of ``f`` and ``g``, ``Rw``, ``Rv`` and ``dof`` (unless the noise
-        is Gaussian).  Vector and matrix entries give one line per element (the upper triangle
+        default: every parameter of ``f`` and ``g``, ``Rw``, ``Rv`` and the noise family's other
+        parameters (``dof``).  Vector and matrix entries give one line per element (the upper triangle
         of ``Rw``, ``Rv``, ``x0_cov``).
     true_values : dict, optional
         ``{name: value}`` drawn as dashed horizontal lines in the colour of the estimate

@@ -18,6 +18,7 @@ The Silverbox loader lives with its case study in ``examples/silverbox``.
 """
 
 from ._base import SimulatedData
+from .continuous_pendulum import CT_PENDULUM_PARAMS, CT_PENDULUM_TS, make_continuous_pendulum
 from .manipulator import (
     MANIPULATOR_ALPHA3,
     MANIPULATOR_ALPHA10,
@@ -43,7 +44,6 @@ from .manipulator import (
     manipulator_transition_matrix,
 )
 from .paper import PAPER_X0_COV, make_gopaluni_example, make_huang_example, make_paper_example
-from .continuous_pendulum import CT_PENDULUM_PARAMS, CT_PENDULUM_TS, make_continuous_pendulum
 from .two_sensors import make_two_sensor_example
 
 __all__ = [

@@ -93,7 +93,7 @@ def make_continuous_pendulum(
     y = np.where(mask[:, None], y_clean + signs[:, None] * (y - y_clean), y)
     params = dict(
         w2=float(w2), c=float(c), b=float(b), Ts=float(Ts),
-        Rw=_to_list(np.diag([0.0, process_noise])), Rv=[[noise_std**2]], dof=float("inf"),
+        Rw=_to_list(np.diag([0.0, process_noise])), Rv=[[noise_std**2]],
         x0_mean=[0.0, 0.0], input_amplitude=float(input_amplitude), hold=hold,
         outlier_fraction=fraction, outlier_range=[lo, hi],
     )
