@@ -17,7 +17,6 @@ import numpy as np
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin, clone
 from sklearn.exceptions import ConvergenceWarning, NotFittedError
-from sklearn.metrics import r2_score
 from sklearn.utils import check_random_state
 from torch import nn
 
@@ -1086,6 +1085,8 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
                 )
         if robust:
             return robust_r2_score(yt, yp)
+        from sklearn.metrics import r2_score  # here: importing sklearn.metrics loads ~60 modules
+
         scores = []
         for j in range(yt.shape[1]):
             m = ~np.isnan(yt[:, j])
