@@ -17,7 +17,6 @@ from dataclasses import replace
 import numpy as np
 import torch
 from sklearn.exceptions import NotFittedError
-from sklearn.metrics import r2_score
 from sklearn.utils import check_random_state
 
 from . import _validation as V
@@ -294,6 +293,8 @@ class ModelState:
                 )
         if robust:
             return robust_r2_score(yt, yp)
+        from sklearn.metrics import r2_score  # here: importing sklearn.metrics loads ~60 modules
+
         scores = []
         for j in range(yt.shape[1]):
             m = ~np.isnan(yt[:, j])

@@ -11,11 +11,10 @@ replaces the variances by squared robust scales (1.4826 x median absolute deviat
 from __future__ import annotations
 
 import numpy as np
-from sklearn.metrics import make_scorer
 
 from ._stats import robust_scale
 
-__all__ = ["fit_percent", "robust_r2_score", "robust_r2_scorer"]
+__all__ = ["fit_percent", "robust_r2_score", "robust_r2_scorer"]  # noqa: F822 (robust_r2_scorer: __getattr__)
 
 
 def robust_r2_score(y_true, y_pred) -> float:
@@ -82,5 +81,12 @@ def _pooled(y) -> np.ndarray:
     return a.reshape(len(a), -1)
 
 
-#: ``scoring=`` for scikit-learn's model selection: ``robust_r2_score`` of ``predict(u)`` (free run).
-robust_r2_scorer = make_scorer(robust_r2_score)
+def __getattr__(name: str):
+    """``robust_r2_scorer``: ``scoring=`` for scikit-learn's model selection, ``robust_r2_score`` of
+    ``predict(u)`` (free run).  Made on first use (PEP 562): ``sklearn.metrics`` loads ~60 modules."""
+    if name == "robust_r2_scorer":
+        from sklearn.metrics import make_scorer
+
+        globals()[name] = scorer = make_scorer(robust_r2_score)
+        return scorer
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
