@@ -687,11 +687,10 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         """The start after the robust simulation-error fit (``first_stage_`` says what it did), and
         the noise-free simulation ``(states, outputs)`` of that start if the first stage was kept."""
         given = _copy_model(base)
-        report = simulation_error_fit(base, data, segment_length=FIRST_STAGE_WINDOW)
+        report = simulation_error_fit(base, data)
         self.first_stage_ = report
         if report.accepted:
-            starts = report.first_states[torch.as_tensor(_first_windows(data, FIRST_STAGE_WINDOW))]
-            staged = replace(base, x0_mean=starts.mean(0))
+            staged = replace(base, x0_mean=report.record_states.mean(0))
             run = prediction.free_run(staged, data.u)
             yt = torch.cat(data.unpad(data.y)).cpu().numpy()
             report.explained = float(robust_r2_score(yt, torch.cat(data.unpad(run[1])).cpu().numpy()))
