@@ -502,7 +502,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         smoother_opts = dict(self.smoother_options or {})
         if self.chunk_size is not None and self.smoother == "ffbsm":
             smoother_opts.setdefault("chunk_size", self.chunk_size)
-        return EMOptions(
+        opts = EMOptions(
             n_iter=self.n_iter,
             tol=self.tol,
             n_particles_final=self.n_particles_final,
@@ -533,6 +533,12 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             ),
             progress=progress if self.verbose else None,
         )
+        import os
+        if os.environ.get("NSSM_OPT"):
+            opts.mstep.optimizer = os.environ["NSSM_OPT"]
+        if os.environ.get("NSSM_ROWS"):
+            opts.mstep.rows_per_step = int(os.environ["NSSM_ROWS"])
+        return opts
 
     def _e_step(self, model, data, generator):
         """The E-step at the final particle count (``smooth``, outlier weights)."""
@@ -596,6 +602,17 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
         n_workers = min(n_runs, _parallel.effective_n_jobs(self.n_jobs))
         # a warm start continues what the fit did with the process noise (fit_Rw="auto" may have held it)
         fit_Rw = self._fitted_Rw() if warm else None
+        import os
+        self._policy = os.environ.get("NSSM_POLICY", "")
+        if self._policy == "P1" and staged is not None and self.fit_Rw == "auto":
+            # simulation model: the process noise held small, Rv from the first stage's residuals
+            base = replace(base, Rw=held_process_noise(staged_run[0], data))
+            if self.Rv_init is None:
+                err = torch.cat(data.unpad(data.y - staged_run[1])).cpu().numpy()
+                s2 = torch.as_tensor(np.nanmedian(np.abs(err), axis=0) * 1.4826) ** 2
+                base = replace(base, noise=base.noise.replace(Rv=torch.diag(s2).to(base.Rw)))
+            fit_Rw = False
+            staged = None
         if n_workers > 1:  # each restart on a worker; run r depends on (random_state, r) only
             tasks = [(self, base, data, r, seeds[r], limit, device, False, fit_Rw) for r in range(n_runs)]
             runs = _parallel.run_tasks(_restart, tasks, self.n_jobs, f"{n_runs} EM restarts")
@@ -626,7 +643,7 @@ class RobustNSSMEstimator(RegressorMixin, BaseEstimator):
             )
         best = max(ok, key=lambda run: run.log_likelihood)
         free_run_outputs = prediction.free_run(best.model, data.u)[1]  # (T, B, p) of the fitted model
-        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        self.fit_Rw_ = self._fitted_Rw() if warm else (bool(self.fit_Rw) if fit_Rw is None else fit_Rw)
         if staged is not None:
             best, free_run_outputs = self._keep_the_simulation(
                 staged, staged_run, best, free_run_outputs, data, seeds[0], limit, device

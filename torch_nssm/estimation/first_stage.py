@@ -31,7 +31,7 @@ from .._stats import MAD_TO_STD
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.prediction import free_run
 from .free_parameters import FreeParameters
-from .least_squares import levenberg_marquardt
+from .least_squares import Links, levenberg_marquardt
 
 __all__ = [
     "FirstStageReport",
@@ -73,6 +73,9 @@ class StageReport:
         The solver's stopping reason, or ``"diverged"`` (the simulation over these windows left
         the finite range at the stage's start).
     seconds : float
+    track : str
+        ``"continuation"`` (the growing windows) or ``"direct"`` (one window per record from the
+        start).
     """
 
     horizon: int
@@ -83,6 +86,7 @@ class StageReport:
     n_iter: int
     status: str
     seconds: float
+    track: str = "continuation"
 
 
 @dataclass
@@ -186,9 +190,23 @@ def _windows(data: SequenceBatch, spans: list[tuple[int, int, int]]) -> Sequence
     )
 
 
+def _despiked(col: np.ndarray, width: int = 7) -> np.ndarray:
+    """``col`` with isolated spikes replaced by the running median (a Hampel filter: deviations from
+    the median of ``width`` samples beyond 4 robust standard deviations)."""
+    if col.size < width:
+        return col
+    pad = width // 2
+    padded = np.pad(col, pad, mode="edge")
+    med = np.median(np.lib.stride_tricks.sliding_window_view(padded, width), axis=-1)
+    dev = col - med
+    s = MAD_TO_STD * np.median(np.abs(dev))
+    return np.where(np.abs(dev) > 4.0 * s, med, col) if s > 0 else col
+
+
 def initial_horizon(data: SequenceBatch, n_states: int) -> int:
     """The first stage's shortest windows: twice the lag at which the autocorrelation of the
-    (clipped) outputs falls below one half, at least ``max(10, 4 nx)`` samples.
+    outputs (spikes removed by a running median, then clipped) falls below one half, at least
+    ``max(10, 4 nx)`` samples.
 
     Windows about as long as the outputs' memory see the dynamics that matter at that scale and
     still start each window from a state fitted to it; shorter ones fit the local shape of the
@@ -202,6 +220,7 @@ def initial_horizon(data: SequenceBatch, n_states: int) -> int:
             col = col[np.isfinite(col)]
             if col.size < 8:
                 continue
+            col = _despiked(col)
             med = np.median(col)
             s = MAD_TO_STD * np.median(np.abs(col - med))
             if not s > 0:
@@ -229,15 +248,14 @@ def _horizons(data: SequenceBatch, first: int) -> list[int]:
 
 
 # ---------------------------------------------------------------------------------------- simulation
-def _simulate(forward, x0: Tensor, u: Tensor) -> Tensor:
-    """Outputs ``(T, W, p)`` of the noise-free simulation from ``x0`` ``(W, nx)`` (``forward(label,
-    x, u)`` calls ``f`` or ``g``)."""
+def _simulate(forward, x0: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Outputs ``(T, W, p)`` of the noise-free simulation from ``x0`` ``(W, nx)``, and the state after
+    the last sample ``(W, nx)`` (``forward(label, x, u)`` calls ``f`` or ``g``)."""
     x, states = x0, []
     for k in range(u.shape[0]):
         states.append(x)
-        if k + 1 < u.shape[0]:
-            x = forward("f", x, u[k])
-    return forward("g", torch.stack(states), u)
+        x = forward("f", x, u[k])
+    return forward("g", torch.stack(states), u), x
 
 
 class _Shooting:
@@ -255,11 +273,11 @@ class _Shooting:
         self.weight = self.mask.permute(1, 0, 2).reshape(W, T * p).to(windows.y.dtype)
 
     @torch.inference_mode()
-    def __call__(self, thetas: Tensor, x0s: Tensor) -> Tensor:
-        out = self.params.map(_simulate, thetas, x0s, self.u, batched=(True, False))  # (S, T, W, p)
+    def __call__(self, thetas: Tensor, x0s: Tensor) -> tuple[Tensor, Tensor]:
+        out, ends = self.params.map(_simulate, thetas, x0s, self.u, batched=(True, False))  # (S, T, W, p)
         r = torch.where(self.mask, (self.y - out) / self.scale, torch.zeros_like(out))
         S, T, W, p = r.shape
-        return r.permute(0, 2, 1, 3).reshape(S, W, T * p)
+        return r.permute(0, 2, 1, 3).reshape(S, W, T * p), ends
 
     @torch.no_grad()
     def states_at(self, theta: Tensor, x0: Tensor, steps: list[int]) -> Tensor:
@@ -329,26 +347,49 @@ def _record_starts(model: StateSpaceModel, data: SequenceBatch) -> Tensor:
 
 
 # ---------------------------------------------------------------------------------------- the fit
+#: The continuity between consecutive windows (multiple shooting): a mismatch of this fraction of
+#: a state's spread over the windows' first states costs as much as one scaled output error.
+CONTINUITY = float(__import__("os").environ.get("NSSM_KAPPA", "0.1"))
+
+
+def _links(spans: list[tuple[int, int, int]], x0: Tensor) -> Links | None:
+    """Which consecutive windows continue each other (the same record, adjacent), and the mismatch
+    scale of each state (:data:`CONTINUITY` times its robust spread over the windows' first states)."""
+    linked = [b == nb and e == ns for (b, _, e), (nb, ns, _) in zip(spans[:-1], spans[1:])]
+    if not any(linked):
+        return None
+    med = x0.median(0).values
+    spread = MAD_TO_STD * (x0 - med).abs().median(0).values
+    fallback = x0.std(0) if x0.shape[0] > 1 else torch.ones_like(med)
+    spread = torch.where(spread > 0, spread, fallback)
+    spread = torch.where(spread > 0, spread, torch.ones_like(spread))
+    return Links(torch.as_tensor(linked, device=x0.device), CONTINUITY * spread)
+
+
 def _fit_stage(
     params: FreeParameters,
     theta: Tensor,
+    spans: list[tuple[int, int, int]],
     windows: SequenceBatch,
     x0: Tensor,
     max_iter: int,
     loss: str,
 ):
-    """Levenberg-Marquardt over one stage's windows; the robust scale of the residuals fixed at the
-    stage's start (per output)."""
-    with torch.no_grad():
-        start = _Shooting(params, windows, torch.ones(windows.y.shape[-1], dtype=x0.dtype, device=x0.device))
-        r = start(theta.unsqueeze(0), x0.unsqueeze(0))[0].reshape(windows.n_sequences, windows.n_steps, -1)
+    """Levenberg-Marquardt over one stage's windows, consecutive windows softly continuous; the
+    robust scale of the output errors fixed at the stage's start (per output)."""
+    ones = torch.ones(windows.y.shape[-1], dtype=x0.dtype, device=x0.device)
+    start = _Shooting(params, windows, ones)
+    r = start(theta.unsqueeze(0), x0.unsqueeze(0))[0][0].reshape(windows.n_sequences, windows.n_steps, -1)
     scale = []
     for j in range(r.shape[-1]):
         col = r[..., j][start.mask.transpose(0, 1)[..., j]]
         s = MAD_TO_STD * col.abs().median() if col.numel() else r.new_tensor(1.0)
         scale.append(s if bool(torch.isfinite(s) & (s > 0)) else r.new_tensor(1.0))
     problem = _Shooting(params, windows, torch.stack(scale))
-    result = levenberg_marquardt(problem, theta, x0, problem.weight, loss=loss, max_iter=max_iter, ftol=STAGE_FTOL)
+    result = levenberg_marquardt(
+        problem, theta, x0, problem.weight, loss=loss, links=_links(spans, x0), max_iter=max_iter,
+        ftol=STAGE_FTOL,
+    )
     return result, problem
 
 
@@ -372,7 +413,10 @@ def simulation_error_fit(
         One stage with windows of this many samples (multiple shooting), instead of ``horizons``.
     horizons : "auto", list of int or None
         ``"auto"``: windows from :func:`initial_horizon`, growing by :data:`HORIZON_GROWTH` until one
-        window covers each record; a list: those window lengths in order; ``None``: one window per
+        window covers each record (stopped early once two stages in a row do not improve the free
+        run), and where that leaves the records' free run between :data:`DIRECT_RANGE`'s bounds of
+        explained variance, also one window per record from the start (a robust output-error fit);
+        the best free run is kept.  A list: those window lengths in order; ``None``: one window per
         record.
     max_iter : int
         Levenberg-Marquardt iterations per stage.
@@ -387,73 +431,31 @@ def simulation_error_fit(
     """
     clock = time.perf_counter()
     params = FreeParameters({"f": model.f, "g": model.g})
-    nx = model.state_dim
     if segment_length is not None:
         plan = [int(segment_length)]
     elif horizons == "auto":
-        plan = _horizons(data, initial_horizon(data, nx))
+        plan = _horizons(data, initial_horizon(data, model.state_dim))
     elif horizons is None:
         plan = [int(data.lengths.max())]
     else:
         plan = [int(h) for h in horizons]
-    y_scale = _output_scale(data)
-    with torch.no_grad():
-        path = _record_starts(model, data)  # (T, B, nx)
-        start_errors = _free_run_errors(model, data, model.per_sequence("x0_mean", data.n_sequences))
-    judged0 = _judge(start_errors, y_scale)
-    rmse0 = _rmse(start_errors)
-    theta0 = params.vector()
-    report = FirstStageReport(rmse0, rmse0, judged0, judged0, False, 0)
+    ladder = _Ladder(model, data, params, max_iter, loss)
+    report = FirstStageReport(ladder.rmse0, ladder.rmse0, ladder.judged0, ladder.judged0, False, 0)
     if params.size == 0:
         report.seconds = time.perf_counter() - clock
         return report
-
-    best = (judged0, theta0, None, None, None, start_errors)  # (judge, theta, windows x0, record x0, stage)
-    theta, previous = theta0, None  # previous: (spans, fitted x0, problem) of the last stage
-    for horizon in plan:
-        tic = time.perf_counter()
-        spans = _window_starts(data, horizon)
-        windows = _windows(data, spans)
-        if previous is None:
-            x0 = torch.stack([path[s, b] for b, s, _ in spans])
-        else:
-            x0 = _continued_states(previous, spans, theta)
-        try:
-            result, problem = _fit_stage(params, theta, windows, x0, max_iter, loss)
-        except (RuntimeError, torch.linalg.LinAlgError) as exc:  # a module that fails on the way
-            report.horizon_limit = f"the fit over windows of {horizon} samples failed ({exc})"
-            break
-        if result.status == "not_finite":
-            report.stages.append(
-                StageReport(horizon, len(spans), math.inf, math.inf, math.inf, 0, "diverged", time.perf_counter() - tic)
-            )
-            report.horizon_limit = (
-                f"the noise-free simulation diverges over windows of {horizon} samples: the stages stop "
-                f"at windows of {previous[3] if previous else horizon} samples"
-            )
-            break
-        theta = result.theta
-        params.assign(theta)
-        firsts = [i for i, (b, s, _) in enumerate(spans) if s == 0]
-        record_x0 = result.local[torch.as_tensor(firsts, device=x0.device)]
-        with torch.no_grad():
-            errors = _free_run_errors(model, data, record_x0)
-        judged = _judge(errors, y_scale)
-        report.stages.append(
-            StageReport(
-                horizon, len(spans), result.initial_objective, result.objective, judged, result.n_iter,
-                result.status, time.perf_counter() - tic,
-            )
-        )
-        if judged < best[0] or (best[2] is None and math.isfinite(judged) and judged <= best[0]):
-            best = (judged, theta.clone(), result.local.clone(), record_x0.clone(), horizon, errors)
-        previous = (spans, result.local, problem, horizon)
-    judged, theta_best, window_x0, record_x0, horizon, errors = best
-    params.assign(theta_best)
+    ladder.run(plan, report, "continuation", early_stop=horizons == "auto" and segment_length is None)
+    full = int(data.lengths.max())
+    explained = 1.0 - ladder.best[0] ** 2
+    if horizons == "auto" and segment_length is None and plan[0] < full and DIRECT_RANGE[0] <= explained < DIRECT_RANGE[1]:
+        params.assign(ladder.theta0)
+        ladder.run([full], report, "direct", early_stop=False)
+    judged, theta_best, window_x0, record_x0, horizon, errors = ladder.best
     report.seconds = time.perf_counter() - clock
     if window_x0 is None:  # no stage simulated the records better than the start
-        params.assign(theta0)
+        params.assign(ladder.theta0)
         return report
+    params.assign(theta_best)
     report.accepted = True
     report.loss_after = judged
     report.rmse_after = _rmse(errors)
@@ -462,6 +464,84 @@ def simulation_error_fit(
     report.horizon = horizon
     report.n_windows = window_x0.shape[0]
     return report
+
+
+#: The direct fit (one window per record from the start) also runs when the continuation's best free
+#: run explains a share of ``y`` in this range (robust R²): below it the process noise dominates and
+#: no simulation fit is kept; above it the continuation has found the simulation.
+DIRECT_RANGE = (0.5, 0.99)
+
+#: A stage improves on the best so far when its judge is lower by this fraction.
+IMPROVEMENT = 0.01
+
+
+class _Ladder:
+    """Runs stages of windows from a start, judging each by the whole records' free run and keeping
+    the best (:attr:`best`: judge, parameters, window and record first states, horizon, errors)."""
+
+    def __init__(self, model, data, params, max_iter, loss):
+        self.model, self.data, self.params = model, data, params
+        self.max_iter, self.loss = max_iter, loss
+        self.y_scale = _output_scale(data)
+        with torch.no_grad():
+            self.path = _record_starts(model, data)  # (T, B, nx)
+            errors = _free_run_errors(model, data, model.per_sequence("x0_mean", data.n_sequences))
+        self.judged0, self.rmse0 = _judge(errors, self.y_scale), _rmse(errors)
+        self.theta0 = params.vector()
+        self.best = (self.judged0, self.theta0, None, None, None, errors)
+
+    def run(self, plan: list[int], report: FirstStageReport, track: str, early_stop: bool) -> None:
+        theta, previous, stale = self.params.vector(), None, 0
+        for horizon in plan:
+            tic = time.perf_counter()
+            spans = _window_starts(self.data, horizon)
+            windows = _windows(self.data, spans)
+            if previous is None:
+                x0 = torch.stack([self.path[s, b] for b, s, _ in spans])
+            else:
+                x0 = _continued_states(previous, spans, theta)
+            try:
+                result, problem = _fit_stage(self.params, theta, spans, windows, x0, self.max_iter, self.loss)
+            except (RuntimeError, torch.linalg.LinAlgError) as exc:  # a module that fails on the way
+                report.horizon_limit = f"the fit over windows of {horizon} samples failed ({exc})"
+                return
+            if result.status == "not_finite":
+                report.stages.append(
+                    StageReport(
+                        horizon, len(spans), math.inf, math.inf, math.inf, 0, "diverged",
+                        time.perf_counter() - tic, track,
+                    )
+                )
+                reached = previous[3] if previous else None
+                report.horizon_limit = (
+                    f"the noise-free simulation diverges over windows of {horizon} samples"
+                    + (f": the stages stop at windows of {reached} samples" if reached else "")
+                )
+                return
+            theta = result.theta
+            self.params.assign(theta)
+            firsts = [i for i, (_, s, _) in enumerate(spans) if s == 0]
+            record_x0 = result.local[torch.as_tensor(firsts, device=x0.device)]
+            with torch.no_grad():
+                errors = _free_run_errors(self.model, self.data, record_x0)
+            judged = _judge(errors, self.y_scale)
+            report.stages.append(
+                StageReport(
+                    horizon, len(spans), result.initial_objective, result.objective, judged, result.n_iter,
+                    result.status, time.perf_counter() - tic, track,
+                )
+            )
+            improved = judged < (1.0 - IMPROVEMENT) * self.best[0]
+            if judged < self.best[0] or (self.best[2] is None and math.isfinite(judged) and judged <= self.best[0]):
+                self.best = (judged, theta.clone(), result.local.clone(), record_x0.clone(), horizon, errors)
+            stale = 0 if improved else stale + 1
+            previous = (spans, result.local, problem, horizon)
+            if early_stop and stale >= 2 and horizon != plan[-1]:
+                report.horizon_limit = (
+                    f"two stages in a row (windows of {plan[plan.index(horizon) - 1]} and {horizon} samples) "
+                    "did not improve the free run of the records: the stages stop there"
+                )
+                return
 
 
 def _continued_states(previous, spans: list[tuple[int, int, int]], theta: Tensor) -> Tensor:

@@ -86,7 +86,8 @@ class FreeParameters:
         }
 
     def map(self, fn: Callable[..., Tensor], thetas: Tensor, *args: Tensor, batched: tuple[bool, ...] = ()) -> Tensor:
-        """``fn(forward, *args)`` at each parameter vector of ``thetas`` ``(S, P)``, stacked ``(S, ...)``.
+        """``fn(forward, *args)`` at each parameter vector of ``thetas`` ``(S, P)``, stacked ``(S, ...)``
+        (a tuple of such when ``fn`` returns a tuple).
 
         ``forward(label, *inputs)`` calls module ``label`` with its free parameters at that vector
         (the other parameters and buffers as they are).  ``batched[i]``: argument ``i`` carries the
@@ -111,4 +112,6 @@ class FreeParameters:
         for s in range(thetas.shape[0]):
             p = {label: {k: v[s] for k, v in d.items()} for label, d in params.items()}
             out.append(one(p, *(a[s] if b else a for a, b in zip(args, flags))))
+        if isinstance(out[0], tuple):
+            return tuple(torch.stack(parts) for parts in zip(*out))
         return torch.stack(out)

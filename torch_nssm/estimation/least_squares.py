@@ -24,7 +24,7 @@ from typing import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["LOSSES", "LeastSquaresResult", "robust_loss", "levenberg_marquardt"]
+__all__ = ["LOSSES", "Links", "LeastSquaresResult", "robust_loss", "levenberg_marquardt"]
 
 #: ``rho(s)`` of the squared scaled residual ``s`` and its derivative ``rho'(s)``.  ``cauchy`` with
 #: ``c = CAUCHY_C``: 95 % efficiency at the normal, and a far outlier's weight goes to zero.
@@ -75,12 +75,33 @@ class LeastSquaresResult:
     status: str
 
 
-Residuals = Callable[[Tensor, Tensor], Tensor]
+Residuals = Callable[[Tensor, Tensor], "Tensor | tuple[Tensor, Tensor]"]
 
 
-def _objective(r: Tensor, weight: Tensor, total: Tensor, loss: str) -> float:
+@dataclass
+class Links:
+    """Soft continuity between consecutive windows (multiple shooting): window ``w``'s simulated
+    state after its last sample should equal window ``w + 1``'s first state.  Each linked pair adds
+    ``q`` residuals ``(end_w - local_{w+1}) / scale`` to the objective (not robustified).
+
+    Attributes
+    ----------
+    linked : Tensor of bool, shape (W - 1,)
+        Whether window ``w`` continues into window ``w + 1`` (the same record).
+    scale : Tensor, shape (q,)
+        The mismatch of each state that costs as much as one scaled output residual.
+    """
+
+    linked: Tensor
+    scale: Tensor
+
+
+def _objective(r: Tensor, weight: Tensor, total: Tensor, loss: str, link_r: Tensor | None = None) -> float:
     rho, _ = robust_loss(r * r, loss)
-    value = float((weight * rho).sum() / total)
+    value = (weight * rho).sum()
+    if link_r is not None:
+        value = value + (link_r * link_r).sum()
+    value = float(value / total)
     return value if math.isfinite(value) else math.inf
 
 
@@ -88,10 +109,30 @@ def _fd_steps(v: Tensor) -> Tensor:
     return math.sqrt(torch.finfo(v.dtype).eps) * torch.clamp(v.abs(), min=1e-2)
 
 
-def _jacobian(residuals: Residuals, theta: Tensor, local: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _split(out) -> tuple[Tensor, Tensor | None]:
+    return out if isinstance(out, tuple) else (out, None)
+
+
+def _link_residuals(ends: Tensor | None, local: Tensor, links: Links | None) -> Tensor | None:
+    """``(end_w - local_{w+1}) / scale`` where linked, 0 elsewhere, shape ``(W - 1, q)``."""
+    if links is None or ends is None:
+        return None
+    e = (ends[..., :-1, :] - local[..., 1:, :]) / links.scale
+    return torch.where(links.linked.unsqueeze(-1), e, torch.zeros_like(e))
+
+
+def _fd(values: Tensor, base: Tensor, h: Tensor) -> Tensor:
+    """Finite-difference columns ``(values - base) / h`` moved last, non-finite slopes set to 0 (a
+    perturbed evaluation that left the finite range carries no usable slope)."""
+    J = ((values - base) / h.view(-1, *([1] * base.dim()))).movedim(0, -1)
+    return torch.nan_to_num(J, nan=0.0, posinf=0.0, neginf=0.0)
+
+
+def _jacobian(residuals: Residuals, theta: Tensor, local: Tensor):
     """Residuals ``(W, m)`` at the point and their Jacobians ``(W, m, P)``, ``(W, m, q)`` by one-sided
-    differences, all ``P + q + 1`` evaluations as one batch.  Local direction ``j`` moves entry ``j``
-    of every window's local parameters at once (windows do not see each other's)."""
+    differences, all ``P + q + 1`` evaluations as one batch; with window end states, also those and
+    their Jacobians ``(W, q, P)``, ``(W, q, q)``.  Local direction ``j`` moves entry ``j`` of every
+    window's local parameters at once (windows do not see each other's)."""
     P, (W, q) = theta.numel(), local.shape
     h_theta = _fd_steps(theta)
     h_local = _fd_steps(local).amax(0) if W else torch.zeros(q, dtype=local.dtype, device=local.device)
@@ -101,14 +142,11 @@ def _jacobian(residuals: Residuals, theta: Tensor, local: Tensor) -> tuple[Tenso
     thetas[1 + idx, idx] += h_theta
     for j in range(q):
         locals_[1 + P + j, :, j] += h_local[j]
-    r = residuals(thetas, locals_)  # (1 + P + q, W, m)
-    base = r[0]
-    Jg = ((r[1 : 1 + P] - base) / h_theta.view(-1, 1, 1)).permute(1, 2, 0)
-    Jl = ((r[1 + P :] - base) / h_local.view(-1, 1, 1)).permute(1, 2, 0)
-    # a perturbed evaluation that left the finite range carries no usable slope
-    return base, torch.nan_to_num(Jg, nan=0.0, posinf=0.0, neginf=0.0), torch.nan_to_num(
-        Jl, nan=0.0, posinf=0.0, neginf=0.0
-    )
+    r, ends = _split(residuals(thetas, locals_))  # (1 + P + q, W, m), (1 + P + q, W, q)
+    out = [r[0], _fd(r[1 : 1 + P], r[0], h_theta), _fd(r[1 + P :], r[0], h_local)]
+    if ends is not None:
+        out += [ends[0], _fd(ends[1 : 1 + P], ends[0], h_theta), _fd(ends[1 + P :], ends[0], h_local)]
+    return out
 
 
 def _damped(M: Tensor, lam: float) -> Tensor:
@@ -118,35 +156,99 @@ def _damped(M: Tensor, lam: float) -> Tensor:
     return M + torch.diag_embed(lam * torch.maximum(d, floor) + floor)
 
 
-def _step(
-    Jg: Tensor, Jl: Tensor, r: Tensor, omega: Tensor, lam: float
-) -> tuple[Tensor, Tensor, float]:
-    """The damped Gauss-Newton step ``(dtheta, dlocal)`` by the Schur complement of the window
-    blocks, and the decrease of the local quadratic model it predicts."""
-    P, q = Jg.shape[-1], Jl.shape[-1]
+@dataclass
+class _Normal:
+    """The Gauss-Newton normal equations in block-arrow form: shared block ``A``, ``a``; window
+    blocks ``C``, ``c``; couplings ``B`` (shared-window) and ``O`` (window ``w`` with ``w + 1``)."""
+
+    A: Tensor
+    a: Tensor
+    B: Tensor
+    C: Tensor
+    c: Tensor
+    O: Tensor | None
+
+
+def _normal_equations(J: list, r: Tensor, omega: Tensor, link_r, links: Links | None, total) -> _Normal:
+    _, Jg, Jl = J[:3]
     wJg = omega.unsqueeze(-1) * Jg
+    wJl = omega.unsqueeze(-1) * Jl
     A = torch.einsum("wmp,wmk->pk", wJg, Jg)
     a = torch.einsum("wmp,wm->p", wJg, r)
+    B = torch.einsum("wmp,wmk->wpk", wJg, Jl)
+    C = torch.einsum("wmp,wmk->wpk", wJl, Jl)
+    c = torch.einsum("wmq,wm->wq", wJl, r)
+    O = None
+    if link_r is not None:
+        mask = links.linked.to(r.dtype).view(-1, 1, 1) / total
+        Eg = J[4][:-1] / links.scale.view(-1, 1) * mask  # (W-1, q, P), scaled by 1/total
+        Ez = J[5][:-1] / links.scale.view(-1, 1)  # (W-1, q, q)
+        inv_s = (1.0 / links.scale).expand_as(link_r)
+        A = A + torch.einsum("kqp,kqr,k->pr", J[4][:-1] / links.scale.view(-1, 1), Eg, torch.ones(len(Eg), dtype=r.dtype, device=r.device))
+        a = a + torch.einsum("kqp,kq->p", Eg, link_r)
+        B = B.clone()
+        B[:-1] += torch.einsum("kqp,kqr->kpr", Eg, Ez)
+        B[1:] -= Eg.transpose(-1, -2) * inv_s.unsqueeze(-2)
+        C = C.clone()
+        C[:-1] += torch.einsum("kqp,kqr->kpr", Ez * mask, Ez)
+        C[1:] += torch.diag_embed(inv_s * inv_s) * mask
+        O = -(Ez * mask).transpose(-1, -2) * inv_s.unsqueeze(-2)  # (W-1, q, q): d^2/dz_w dz_{w+1}
+        c = c.clone()
+        c[:-1] += torch.einsum("kqp,kq->kp", Ez * mask, link_r)
+        c[1:] -= link_r * inv_s * mask.view(-1, 1)
+    return _Normal(A, a, B, C, c, O)
+
+
+def _solve_windows(C: Tensor, O: Tensor | None, R: Tensor) -> Tensor:
+    """``T^-1 R`` for the window blocks ``T`` (block diagonal ``C``, or block tridiagonal with ``O``
+    above the diagonal), ``R`` ``(W, q, k)``."""
+    if O is None:
+        return torch.linalg.solve(C, R)
+    import numpy as np
+    from scipy.linalg import solveh_banded
+
+    W, q, k = R.shape
+    Cn, On = C.detach().cpu().numpy(), O.detach().cpu().numpy()
+    ab = np.zeros((2 * q, W * q))
+    a_idx, b_idx = np.meshgrid(np.arange(q), np.arange(q), indexing="ij")
+    lower = a_idx >= b_idx
+    w = np.arange(W)[:, None, None]
+    rows, cols = (w * q + a_idx)[:, lower], (w * q + b_idx)[:, lower]
+    ab[rows - cols, cols] = Cn[:, lower]
+    w = np.arange(W - 1)[:, None, None]
+    rows, cols = (w + 1) * q + a_idx, w * q + b_idx  # the block below the diagonal: O_w^T
+    ab[(rows - cols).ravel(), cols.ravel()] = On.transpose(0, 2, 1).ravel()
+    x = solveh_banded(ab, R.detach().cpu().numpy().reshape(W * q, k), lower=True)
+    return torch.as_tensor(x.reshape(W, q, k), dtype=R.dtype, device=R.device)
+
+
+def _step(J: list, r: Tensor, omega: Tensor, link_r, links, total, lam: float) -> tuple[Tensor, Tensor, float]:
+    """The damped Gauss-Newton step ``(dtheta, dlocal)`` by the Schur complement of the window
+    blocks, and the decrease of the local quadratic model it predicts."""
+    _, Jg, Jl = J[:3]
+    P, q = Jg.shape[-1], Jl.shape[-1]
+    N = _normal_equations(J, r, omega, link_r, links, total)
+    W = N.C.shape[0]
     if q:
-        wJl = omega.unsqueeze(-1) * Jl
-        B = torch.einsum("wmp,wmk->wpk", wJg, Jl)  # (W, P, q)
-        C = torch.einsum("wmp,wmk->wpk", wJl, Jl)  # (W, q, q)
-        c = torch.einsum("wmq,wm->wq", wJl, r)
-        Cd = _damped(C, lam)
-        CinvBt = torch.linalg.solve(Cd, B.transpose(-1, -2))  # (W, q, P)
-        Cinvc = torch.linalg.solve(Cd, c.unsqueeze(-1)).squeeze(-1)  # (W, q)
-        S = _damped(A, lam) - torch.einsum("wpq,wqk->pk", B, CinvBt) if P else A
-        rhs = a - torch.einsum("wpq,wq->p", B, Cinvc) if P else a
+        Cd = _damped(N.C, lam)
+        X = _solve_windows(Cd, N.O, torch.cat([N.B.transpose(-1, -2), N.c.unsqueeze(-1)], -1))
+        TinvBt, Tinvc = X[..., :P], X[..., P]  # (W, q, P), (W, q)
+        S = _damped(N.A, lam) - torch.einsum("wqp,wqk->pk", N.B.transpose(-1, -2), TinvBt) if P else N.A
+        rhs = N.a - torch.einsum("wpq,wq->p", N.B, Tinvc) if P else N.a
     else:
-        S, rhs = _damped(A, lam), a
+        S, rhs = _damped(N.A, lam), N.a
     dg = -torch.linalg.solve(S, rhs) if P else rhs.new_zeros(0)
-    dl = -(Cinvc + torch.einsum("wqp,p->wq", CinvBt, dg)) if q else Jl.new_zeros(Jl.shape[0], 0)
-    # predicted decrease of 1/2 sum omega (r + J d)^2
+    dl = -(Tinvc + torch.einsum("wqp,p->wq", TinvBt, dg)) if q else Jl.new_zeros(W, 0)
+    # predicted decrease of 1/2 (sum omega (r + J d)^2 + sum (e + E d)^2 / total)
     Jd = Jg @ dg if P else torch.zeros_like(r)
     if q:
         Jd = Jd + (Jl @ dl.unsqueeze(-1)).squeeze(-1)
-    predicted = float(-(omega * (r * Jd + 0.5 * Jd * Jd)).sum())
-    return dg, dl, predicted
+    predicted = -(omega * (r * Jd + 0.5 * Jd * Jd)).sum()
+    if link_r is not None:
+        Ed = J[4][:-1] @ dg + (J[5][:-1] @ dl[:-1].unsqueeze(-1)).squeeze(-1) - dl[1:]
+        Ed = torch.where(links.linked.unsqueeze(-1), Ed / links.scale, torch.zeros_like(Ed))
+        predicted = predicted - (link_r * Ed + 0.5 * Ed * Ed).sum() / total
+    return dg, dl, float(predicted)
 
 
 def levenberg_marquardt(
@@ -156,23 +258,28 @@ def levenberg_marquardt(
     weight: Tensor,
     *,
     loss: str = "linear",
+    links: Links | None = None,
     max_iter: int = 50,
     ftol: float = 1e-8,
     xtol: float = 1e-8,
 ) -> LeastSquaresResult:
-    """Minimise ``sum w rho(r^2)`` over ``theta`` (shared) and ``local`` (per window).
+    """Minimise ``sum w rho(r^2)`` (plus the continuity residuals of ``links``) over ``theta``
+    (shared) and ``local`` (per window).
 
     Parameters
     ----------
     residuals : callable
         ``residuals(thetas (S, P), locals (S, W, q)) -> (S, W, m)``: the scaled residuals at ``S``
-        points at once (NaN or inf where an evaluation left the finite range).
+        points at once (NaN or inf where an evaluation left the finite range); with ``links``, a
+        pair ``(residuals, ends)``, ``ends`` ``(S, W, q)`` each window's state after its last sample.
     theta : Tensor, shape (P,)
     local : Tensor, shape (W, q)
         ``q`` may be 0.
     weight : Tensor, shape (W, m)
         Fixed row weights (0 for rows that do not count, e.g. missing outputs).
     loss : {"linear", "cauchy", "soft_l1"}
+    links : Links, optional
+        Soft continuity between consecutive windows.
     max_iter : int
         Jacobians at most.
     ftol, xtol : float
@@ -185,27 +292,34 @@ def levenberg_marquardt(
     """
     total = weight.sum().clamp_min(1e-300)
     n_eval = 1
-    r = residuals(theta.unsqueeze(0), local.unsqueeze(0))[0]
-    F = _objective(r, weight, total, loss)
+
+    def evaluate(th: Tensor, lo: Tensor) -> tuple[Tensor, Tensor | None, float]:
+        r, ends = _split(residuals(th.unsqueeze(0), lo.unsqueeze(0)))
+        link_r = _link_residuals(None if ends is None else ends[0], lo, links)
+        return r[0], link_r, _objective(r[0], weight, total, loss, link_r)
+
+    r, link_r, F = evaluate(theta, local)
     F0 = F
     if not math.isfinite(F):
         return LeastSquaresResult(theta, local, F, F0, 0, n_eval, "not_finite")
     lam, nu = 1e-3, 2.0
     status, n_iter = "max_iter", 0
     while n_iter < max_iter:
-        r, Jg, Jl = _jacobian(residuals, theta, local)
+        J = _jacobian(residuals, theta, local)
+        r = J[0]
+        link_r = _link_residuals(J[3] if len(J) > 3 else None, local, links)
         n_iter += 1
         n_eval += theta.numel() + local.shape[-1] + 1
         _, drho = robust_loss(r * r, loss)
         omega = weight * drho / total
         r0 = torch.where(weight > 0, r, torch.zeros_like(r))
-        accepted = False
+        accepted, first_prediction = False, None
         for _ in range(30):  # raise the damping until a step lowers the objective
-            dg, dl, predicted = _step(Jg, Jl, r0, omega, lam)
+            dg, dl, predicted = _step(J, r0, omega, link_r, links, total, lam)
+            first_prediction = predicted if first_prediction is None else first_prediction
             new_theta, new_local = theta + dg, local + dl
-            r_new = residuals(new_theta.unsqueeze(0), new_local.unsqueeze(0))[0]
+            _, new_link_r, F_new = evaluate(new_theta, new_local)
             n_eval += 1
-            F_new = _objective(r_new, weight, total, loss)
             gain = (F - F_new) / (2.0 * predicted) if predicted > 0 else -1.0
             if math.isfinite(F_new) and F_new < F:
                 accepted = True
@@ -217,7 +331,8 @@ def levenberg_marquardt(
             if lam > 1e16:
                 break
         if not accepted:
-            status = "no_progress"
+            # at a minimum the quadratic model promises nothing: that is convergence
+            status = "converged" if 2.0 * first_prediction <= ftol * max(abs(F), 1e-300) else "no_progress"
             break
         small_f = (F - F_new) <= ftol * max(abs(F), 1e-300)
         scale = torch.cat([theta.abs().reshape(-1), local.abs().reshape(-1)]).clamp_min(1e-8)

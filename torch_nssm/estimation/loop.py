@@ -259,7 +259,13 @@ def run_em(
                 ll = sum(batch_lls) if shared else batch_lls[j]
                 record(histories[g], models[g], ll)
                 lls[g].append(ll)
-                if converged(lls[g], n_obs[g], options.tol):
+                import os
+                if os.environ.get("NSSM_CONV") == "new":
+                    from .convergence import has_converged
+                    stop = has_converged(histories[g], n_obs[g], options.tol)
+                else:
+                    stop = converged(lls[g], n_obs[g], options.tol)
+                if stop:
                     done[g] = True
                 elif it < options.n_iter:
                     update.append(j)
