@@ -77,6 +77,9 @@ class MStepOptions:
         Which noise parameters and the initial-state prior are updated.
     dof_bounds : (float, float)
         Bracket of the degrees-of-freedom root-solve.
+    rows_per_step : int or None
+        Thin the gradient solvers' regressions to at most this many rows per time step
+        (:meth:`Regression.rows`); ``None``: every particle's row.
     """
 
     optimizer: str = "lbfgs"
@@ -86,6 +89,7 @@ class MStepOptions:
     fit_x0: bool = True
     fit_Rw: bool = True
     fit_Rv: bool = True
+    rows_per_step: int | None = None
 
 
 @dataclass
@@ -137,10 +141,18 @@ class Regression:
     def whitener_at(self, sl: slice) -> Tensor:
         return self.whitener if self.whitener.shape[0] == 1 else self.whitener[sl]
 
-    def rows(self, sequences: slice) -> RegressionRows:
-        """The flattened rows of ``sequences`` whose weight exceeds :data:`ROW_WEIGHT_CUTOFF`."""
+    def rows(
+        self, sequences: slice, rows_per_step: int | None = None, generator: torch.Generator | None = None
+    ) -> RegressionRows:
+        """The flattened rows of ``sequences`` whose weight exceeds :data:`ROW_WEIGHT_CUTOFF`.
+
+        ``rows_per_step``: at most that many rows per time step, drawn by systematic resampling of
+        the step's weights (a particle drawn ``c`` times keeps one row with ``c`` times the share),
+        an unbiased thinning of the weighted objective for the gradient solvers."""
         sl = slice(None)
         w = self.row_weight(sl)[:, sequences]
+        if rows_per_step is not None and rows_per_step < w.shape[-1]:
+            w = _thinned(w, rows_per_step, generator)
         keep = w > ROW_WEIGHT_CUTOFF
         T, B, L = keep.shape
         C = self.whitener_at(sl)[:, sequences].expand(T, B, *self.whitener.shape[-2:])
@@ -159,6 +171,25 @@ class Regression:
         target = self.target[:, sequences].expand(T, B, L, self.target.shape[-1])[keep]
         u = self.u[:, sequences].unsqueeze(2).expand(T, B, L, self.u.shape[-1])[keep]
         return RegressionRows(x, u, target, w[keep], P)
+
+
+def _thinned(w: Tensor, m: int, generator: torch.Generator | None) -> Tensor:
+    """Weights ``(T, B, L)`` thinned to at most ``m`` non-zero entries per step with the same sum
+    and expectation (systematic resampling of each step)."""
+    T, B, L = w.shape
+    flat = w.reshape(-1, L)
+    total = flat.sum(-1)
+    live = torch.nonzero(total > 0).flatten()
+    out = torch.zeros_like(flat)
+    if live.numel():
+        cdf = torch.cumsum(flat[live], dim=-1)
+        cdf = cdf / cdf[:, -1:]
+        u = torch.rand((live.numel(), 1), dtype=w.dtype, generator=generator).to(w.device)
+        positions = (torch.arange(m, dtype=w.dtype, device=w.device) + u) / m
+        idx = torch.searchsorted(cdf, positions, right=True).clamp_(max=L - 1)
+        counts = torch.zeros_like(cdf).scatter_add_(1, idx, torch.ones_like(positions))
+        out[live] = counts * (total[live] / m).unsqueeze(-1)
+    return out.reshape(T, B, L)
 
 
 # ---------------------------------------------------------------------- evaluation per group
@@ -279,10 +310,11 @@ def _update_modules(
             return replace(options.solver, generator=gen.cpu_generator(g))
         return options.solver
 
-    reports = [
-        fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, settings(g))
-        for g, m in enumerate(modules)
-    ]
+    reports = []
+    for g, m in enumerate(modules):
+        solver = settings(g)
+        rows = problem.rows(groups.sequences(g), options.rows_per_step, solver.generator)
+        reports.append(fit_weighted_regression(m, rows, options.optimizer, solver))
     return reports, None
 
 

@@ -16,7 +16,7 @@ from typing import Callable
 import torch
 from torch import nn
 
-from .regression import RegressionRows, SolverReport, SolverSettings, adam, lbfgs, weighted_loss
+from .regression import RegressionRows, SolverReport, SolverSettings, adam, gauss_newton, lbfgs, weighted_loss
 
 __all__ = [
     "SOLVERS",
@@ -35,6 +35,7 @@ Solver = Callable[[nn.Module, list, RegressionRows, SolverSettings], None]
 SOLVERS: dict[str, Solver] = {
     "lbfgs": lbfgs,
     "adam": adam,
+    "gauss-newton": gauss_newton,
 }
 
 
