@@ -24,9 +24,13 @@ from .estimation.solvers import SOLVERS, SolverSettings
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.smoothers import SMOOTHERS, smoother_options
 
-__all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options"]
+__all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options", "particles_of"]
 
 Check = Callable[[object, str, object], None]
+
+#: The gradient solvers' regressions keep at most this many rows per time step (an unbiased
+#: thinning of the smoother's particles, :meth:`~torch_nssm.estimation.mstep.Regression.rows`).
+ROWS_PER_STEP = 32
 
 
 def choice(options) -> Check:
@@ -118,13 +122,14 @@ def module(value, name: str, _) -> None:
 #: Parameter -> check, in the order they run.
 PARAMETER_CHECKS: dict[str, Check] = {
     "noise": choice(sorted(NOISE_MODELS)),
-    "optimizer": choice(sorted(SOLVERS)),
+    "optimizer": choice(sorted([*SOLVERS, "auto"])),
     "smoother": choice(sorted(SMOOTHERS)),
     "first_stage": optional(choice(["auto", "simulation"])),
     "acceleration": optional(acceleration),
     "fit_Rw": bool_or_auto,
+    "focus": choice(["prediction", "simulation"]),
     "resampling": choice(sorted(RESAMPLING_SCHEMES)),
-    "n_particles": integer(2),
+    "n_particles": optional(integer(2)),
     "n_particles_final": optional(integer(2)),
     "average_last": integer(0),
     "n_iter": integer(0),
@@ -158,6 +163,21 @@ def check_parameters(estimator) -> torch.device:
     return V.check_device(estimator.device)
 
 
+#: ``n_particles=None``: particles of a fit that estimates the process noise, and of a simulation
+#: model (its process noise held small: the particles differ by their first states and hardly
+#: spread, so a few describe the states' distribution as well as many).
+DEFAULT_PARTICLES = 200
+SIMULATION_PARTICLES = 32
+
+
+def particles_of(estimator) -> int:
+    """The particle count: ``n_particles``, or when it is ``None`` the fit's choice (``n_particles_``,
+    set when the start is planned), else :data:`DEFAULT_PARTICLES`."""
+    if estimator.n_particles is not None:
+        return int(estimator.n_particles)
+    return int(estimator.__dict__.get("n_particles_", DEFAULT_PARTICLES))
+
+
 def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = None) -> EMOptions:
     """The EM loop's settings from ``estimator``'s parameters (``fit_Rw`` overrides theirs)."""
     smoother_opts = dict(estimator.smoother_options or {})
@@ -170,7 +190,7 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
         average_last=estimator.average_last,
         acceleration=estimator.acceleration,
         estep=EStepOptions(
-            n_particles=estimator.n_particles,
+            n_particles=particles_of(estimator),
             smoother=estimator.smoother,
             smoother_options=smoother_opts,
             resampling=estimator.resampling,
@@ -191,6 +211,7 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
             fit_x0=bool(estimator.fit_x0),
             fit_Rw=bool(estimator.fit_Rw) if fit_Rw is None else fit_Rw,
             fit_Rv=bool(estimator.fit_Rv),
+            rows_per_step=ROWS_PER_STEP,
         ),
         progress=progress if estimator.verbose else None,
     )

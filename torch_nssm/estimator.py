@@ -21,7 +21,7 @@ from torch import nn
 from . import _validation as V
 from ._model_state import INITIAL_SAMPLES, ModelState, default_rv_init
 from ._module_params import ModuleParams
-from ._parameters import check_parameters, em_options
+from ._parameters import DEFAULT_PARTICLES, SIMULATION_PARTICLES, check_parameters, em_options
 from ._threads import with_thread_limit
 from .core.model import SequenceBatch
 from .diagnostics import fit_warnings
@@ -32,7 +32,6 @@ from .estimation.loop import EMOptions
 from .estimation.runs import EMRunner, FitReport, RunOutcome, fit_runs
 from .estimation.start import (
     CAUCHY_TUNING,
-    FIRST_STAGE_WINDOW,
     SIMULATION_R2_FLOOR,
     SIMULATION_TOLERANCE,
     StartSettings,
@@ -47,7 +46,7 @@ __all__ = ["RobustNSSMEstimator", "fit_independent"]
 
 #: Constants of the start policy and the fit warnings, importable from here as before they moved.
 _MOVED = (
-    CAUCHY_TUNING, FIRST_STAGE_WINDOW, SIMULATION_R2_FLOOR, SIMULATION_TOLERANCE, INITIAL_SAMPLES,
+    CAUCHY_TUNING, SIMULATION_R2_FLOOR, SIMULATION_TOLERANCE, INITIAL_SAMPLES,
     DOF_FLOOR, DOWNWEIGHTED_SHARE, EXPLAINED_FLOOR, default_rv_init, _noise_absorbing_message,
 )
 
@@ -81,9 +80,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     x0_cov : array-like, optional
         Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal); identity if omitted.
     Rw_init : array-like, optional
-        Initial process-noise covariance; ``0.1 * I`` if omitted.
+        Initial process-noise covariance.  If omitted: held small for a simulation model
+        (``focus``), else a tenth of the variance of each state's change per step along the start's
+        noise-free simulation (diagonal; ``0.1 * I`` where that is not finite).
     Rv_init : array-like, optional
-        Initial measurement-noise scale matrix; ``0.02 * diag(s^2)`` if omitted, ``s`` a robust
+        Initial measurement-noise scale matrix.  If omitted: for a simulation model the robust
+        spread of the first stage's output errors, else ``0.02 * diag(s^2)``, ``s`` a robust
         spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise.
@@ -98,18 +100,21 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         Bracket of the DOF root-solve.
     fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
-        the physics, or for a simulation model).  ``"auto"``: estimate it, but when the first
-        stage ran and EM made the model's noise-free simulation of the training record more than
-        10 % worse than the first stage's (the process noise carrying what ``f`` should simulate),
-        run EM again from the first stage with the process noise held small and keep that fit if
-        it simulates better (a warning says so; ``fit_Rw_`` says what the kept fit did).
+        the physics).  ``"auto"``: held small for a simulation model (``focus``); otherwise
+        estimated, but when EM made the model's noise-free simulation of the training record more
+        than 10 % worse than the first stage's (the process noise carrying what ``f`` should
+        simulate), EM runs again from the first stage with the process noise held small and that
+        fit is kept if it simulates better (a warning says so; ``fit_Rw_`` says what the kept fit
+        did).
     fit_Rv : bool, default=True
         Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
         Re-estimate the initial-state prior from the smoothed first state (its covariance is
         floored by ``Rw`` so that it cannot collapse on a single record).
-    n_particles : int, default=200
-        Number of particles ``L``.
+    n_particles : int, optional
+        Number of particles ``L``.  If omitted: 200, or 32 for a simulation model (``focus``: its
+        process noise held small, the particles differ by their first states and hardly spread);
+        ``n_particles_`` says which.
     n_particles_final : int, optional
         The particle count grows geometrically from ``n_particles`` to this at iteration
         ``n_iter``; the final E-step and later ``smooth``/``predict`` calls use it.
@@ -139,22 +144,36 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (docs/design.md).
     first_stage : {"auto", "simulation", None}, default="auto"
-        ``"simulation"``: before EM, fit ``f``, ``g`` and the first state by robust (Cauchy) simulation
-        error over windows of ``FIRST_STAGE_WINDOW`` samples (multiple shooting), and start EM there
-        (:mod:`torch_nssm.estimation.first_stage`); ``first_stage_`` reports the simulation RMSE
-        before and after.  Restarts (``n_init``) jitter around the first stage's result.
+        ``"simulation"``: before EM, fit ``f``, ``g`` and each record's first state by robust
+        (Cauchy) simulation error, with windows that start short (from the outputs' correlation
+        time) and grow until one covers each record, each stage judged by the free run of the whole
+        records (:mod:`torch_nssm.estimation.first_stage`); EM starts at the best stage.
+        ``first_stage_`` reports every stage.  Restarts (``n_init``) jitter around its result.
         ``"auto"``: the same for physical and grey-box models (free parameters, no network layer
-        in ``f`` or ``g``) when ``n_iter > 0``; models with networks start with
-        :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts from the given
-        values.  docs/design.md, "How a fit starts".
+        in ``f`` or ``g``) when ``n_iter > 0``, and EM starts there only if that free run explains
+        at least half of ``y`` (robust R²; below it the process noise dominates); models with
+        networks start with :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts
+        from the given values.  docs/design.md, "How a fit starts".
+    focus : {"simulation", "prediction"}, default="simulation"
+        What the model is for (MATLAB's ``Focus``).  ``"simulation"``: when the first stage's
+        simulation is kept, EM holds the process noise small (unless ``fit_Rw`` says otherwise)
+        and estimates the measurement noise, the outlier weights, ``g``'s parameters and the first
+        state around that simulation, which it cannot then spoil; ``fit_Rw_`` is False.
+        ``"prediction"``: EM estimates the process noise too (the states may follow ``y``: a
+        model for filtering and k-step-ahead prediction).
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
         new data must have the same numbers of inputs and outputs.
-    optimizer : {"lbfgs", "adam"}, default="lbfgs"
-        Optimiser of the M-step for modules without a closed-form solve.
+    optimizer : {"auto", "gauss-newton", "lbfgs", "adam"}, default="auto"
+        Optimiser of the M-step for modules without a closed-form solve: ``"gauss-newton"``
+        (Levenberg-Marquardt on the weighted residuals, a finite-difference Jacobian: for a few
+        parameters, e.g. a physical model not linear in them), LBFGS, or Adam; ``"auto"``:
+        Gauss-Newton for modules with at most 64 free parameters, else LBFGS.  Their regressions
+        keep at most 32 of the smoother's particles per time step (drawn by systematic resampling
+        of the smoothing weights).
     max_iter_mstep : int, default=20
-        LBFGS iterations (or Adam steps) per M-step.
+        Gauss-Newton or LBFGS iterations (or Adam steps) per M-step.
     learning_rate : float, default=1e-2
         Adam's step size.
     batch_size : int, optional
@@ -266,9 +285,10 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
         fit_Rw: bool | str = "auto",
+        focus: str = "simulation",
         fit_Rv: bool = True,
         fit_x0: bool = True,
-        n_particles: int = 200,
+        n_particles: int | None = None,
         n_particles_final: int | None = None,
         average_last: int = 0,
         acceleration: str | None = None,
@@ -278,7 +298,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         init_jitter: float = 1.0,
         first_stage: str | None = "auto",
         warm_start: bool = False,
-        optimizer: str = "lbfgs",
+        optimizer: str = "auto",
         max_iter_mstep: int = 20,
         learning_rate: float = 1e-2,
         batch_size: int | None = None,
@@ -307,6 +327,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         self.fit_dof = fit_dof
         self.dof_bounds = dof_bounds
         self.fit_Rw = fit_Rw
+        self.focus = focus
         self.fit_Rv = fit_Rv
         self.fit_x0 = fit_x0
         self.n_particles = n_particles
@@ -403,13 +424,18 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         start = plan_start(base, data, self._start_settings(warm))  # first stage, divergence limit, seeds
         if not warm:
             self.first_stage_ = start.first_stage
+            default = SIMULATION_PARTICLES if start.fit_Rw is False else DEFAULT_PARTICLES
+            self.n_particles_ = default if self.n_particles is None else int(self.n_particles)
         fit_warnings.warn_start(start, stacklevel=3)
-        runner = self._runner(device, warm)
+        runner = self._runner(device, warm, start)
+        if start.interrupted:  # Ctrl-C in the first stage: its best stage, evaluated, and no EM
+            runner, start.seeds = runner.without_iterations(), start.seeds[:1]
         runs = fit_runs(runner, start, data, self.n_jobs)  # [(EMResult, start was stable)] per restart
         report = FitReport([RunOutcome.of(*run) for run in runs], self._report_settings(), start=start)
         store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
         best = self._best_run(runs, report, store)  # or KeyboardInterrupt / NumericalError
-        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        asked = self.fit_Rw if start.fit_Rw is None else start.fit_Rw
+        self.fit_Rw_ = self._fitted_Rw() if warm else bool(asked)
         best, outputs = self._kept_simulation(start, best, data, runner, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
         report.describe_kept(best, data, outputs, self.dof_, self.outlier_weights_)
@@ -418,12 +444,16 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
 
     def _start_settings(self, warm: bool) -> StartSettings:
         n_runs = 1 if warm else self.n_init
-        return StartSettings(self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm)
+        return StartSettings(
+            self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm,
+            focus=self.focus, fit_Rw=self.fit_Rw, Rw_given=self.Rw_init is not None,
+            Rv_given=self.Rv_init is not None,
+        )
 
-    def _runner(self, device: torch.device, warm: bool) -> EMRunner:
+    def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
         """One EM run of this fit; a warm start continues what the fit did with the process noise
-        (``fit_Rw="auto"`` may have held it)."""
-        fit_Rw = self._fitted_Rw() if warm else None
+        (``fit_Rw="auto"`` may have held it), a simulation model's start holds it."""
+        fit_Rw = self._fitted_Rw() if warm else start.fit_Rw
         return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw)
 
     def _report_settings(self) -> dict:
@@ -452,10 +482,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         outputs = prediction.free_run(best.model, data.u)[1]
         if start.staged is None:
             return best, outputs
-        rerun = functools.partial(runner.rerun, data=data)
-        report.simulation, best, outputs = check_simulation(start, best, outputs, data, self.fit_Rw, rerun)
-        if report.simulation.outcome == "held":
-            self.fit_Rw_ = False
+        evaluate = functools.partial(runner.evaluate, start, data=data)
+        report.simulation, best, outputs = check_simulation(start, best, outputs, data, evaluate)
         return best, outputs
 
     # ------------------------------------------------------------------ standard errors

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -21,7 +20,8 @@ def _linear_problem(seed=0, W=6, m=40, P=3, q=2):
     B = torch.randn(W, m, q, generator=g, dtype=D)
     theta_true = torch.randn(P, generator=g, dtype=D)
     z_true = torch.randn(W, q, generator=g, dtype=D)
-    y = A @ theta_true + (B @ z_true.unsqueeze(-1)).squeeze(-1) + 0.01 * torch.randn(W, m, generator=g, dtype=D)
+    y = A @ theta_true + (B @ z_true.unsqueeze(-1)).squeeze(-1)
+    y = y + 0.01 * torch.randn(W, m, generator=g, dtype=D)
 
     def residuals(thetas, zs):
         return y - torch.einsum("wmp,sp->swm", A, thetas) - torch.einsum("wmq,swq->swm", B, zs)
@@ -37,7 +37,8 @@ def _linear_problem(seed=0, W=6, m=40, P=3, q=2):
 def test_levenberg_marquardt_solves_a_linear_problem_with_window_blocks_exactly():
     residuals, theta_exact, z_exact, (W, m, P, q) = _linear_problem()
     weight = torch.ones(W, m, dtype=D)
-    res = levenberg_marquardt(residuals, torch.zeros(P, dtype=D), torch.zeros(W, q, dtype=D), weight, ftol=1e-14)
+    zeros = torch.zeros(W, q, dtype=D)
+    res = levenberg_marquardt(residuals, torch.zeros(P, dtype=D), zeros, weight, ftol=1e-14)
     assert res.status in ("converged", "max_iter")
     torch.testing.assert_close(res.theta, theta_exact, atol=1e-7, rtol=0)
     torch.testing.assert_close(res.local, z_exact, atol=1e-7, rtol=0)
@@ -48,7 +49,8 @@ def test_zero_weights_drop_rows_and_no_local_parameters_work():
     residuals, _, _, (W, m, P, q) = _linear_problem(seed=1, q=0)
     weight = torch.ones(W, m, dtype=D)
     weight[:, ::2] = 0.0  # every other row does not count
-    res = levenberg_marquardt(residuals, torch.zeros(P, dtype=D), torch.zeros(W, 0, dtype=D), weight, ftol=1e-14)
+    zeros = torch.zeros(W, 0, dtype=D)
+    res = levenberg_marquardt(residuals, torch.zeros(P, dtype=D), zeros, weight, ftol=1e-14)
     r = residuals(res.theta.unsqueeze(0), torch.zeros(1, W, 0, dtype=D))[0]
     # the normal equations of the weighted rows hold at the solution
     A = -torch.stack([_jacobian(residuals, res.theta, torch.zeros(W, 0, dtype=D))[1]])[0]
@@ -95,8 +97,9 @@ def test_finite_difference_jacobian_matches_autograd():
     theta = torch.tensor([1.3, 0.7], dtype=D)
     z = torch.tensor([[0.4], [-0.2]], dtype=D)
     r, Jg, Jl = _jacobian(residuals, theta, z)
-    exact_g = torch.autograd.functional.jacobian(lambda t: residuals(t.unsqueeze(0), z.unsqueeze(0))[0], theta)
-    exact_l = torch.autograd.functional.jacobian(lambda zz: residuals(theta.unsqueeze(0), zz.unsqueeze(0))[0], z)
+    jacobian = torch.autograd.functional.jacobian
+    exact_g = jacobian(lambda t: residuals(t.unsqueeze(0), z.unsqueeze(0))[0], theta)
+    exact_l = jacobian(lambda zz: residuals(theta.unsqueeze(0), zz.unsqueeze(0))[0], z)
     torch.testing.assert_close(Jg, exact_g, atol=1e-6, rtol=1e-6)
     # each window sees only its own local parameters: the diagonal blocks
     torch.testing.assert_close(Jl[0, :, 0], exact_l[0, :, 0, 0], atol=1e-6, rtol=1e-6)

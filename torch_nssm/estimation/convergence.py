@@ -50,10 +50,20 @@ def _log_scale(key: str) -> bool:
     return key.startswith(_LOG_SCALE_PREFIXES)
 
 
-def has_converged(history: dict, n_obs: int, tol: float, rtol: float = 1e-4) -> bool:
+#: A positive parameter with a standard error (the noise family's :meth:`convergence_scales`) has
+#: converged once its net change over the window is below this fraction of it.
+SE_FRACTION = 0.5
+
+
+def has_converged(
+    history: dict, n_obs: int, tol: float, rtol: float = 1e-4, scales: dict | None = None
+) -> bool:
     """Whether EM's ``history`` (every parameter and ``"log_likelihood"`` at every iteration) shows
     no drift any more: the log-likelihood estimate within its jitter or within ``tol`` per
-    observation over the window, and every recorded parameter within its jitter or ``rtol``."""
+    observation and iteration over the window, and every recorded parameter within its jitter or
+    ``rtol`` (relative), or, for those in ``scales`` (relative standard errors), within
+    :data:`SE_FRACTION` of their standard error."""
+    scales = scales or {}
     if tol <= 0:
         return False
     lls = history.get("log_likelihood", [])
@@ -69,7 +79,10 @@ def has_converged(history: dict, n_obs: int, tol: float, rtol: float = 1e-4) -> 
             continue
         if _log_scale(key):  # relative changes: an absolute tolerance on the log scale
             series = np.log(np.abs(series) + 1e-300)
-            if not stationary(series, 0.0, atol=rtol):
+            atol = rtol
+            if key in scales:
+                atol = np.maximum(rtol, SE_FRACTION * np.asarray(scales[key], dtype=float).reshape(-1))
+            if not stationary(series, 0.0, atol=atol):
                 return False
         elif not stationary(series, rtol):
             return False

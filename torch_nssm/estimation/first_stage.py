@@ -115,6 +115,8 @@ class FirstStageReport:
         Why the continuation stopped before one window covered each record (``None`` if it did not).
     stages : list of StageReport
     seconds : float
+    interrupted : bool
+        Ctrl-C stopped it: the result is the best stage completed before.
     free_run_scale_before_em, free_run_scale_after_em : float
         Set by the estimator: the robust scale (1.4826 MAD about 0) of the training records'
         free-run output errors of the first stage's model and of the EM fit.
@@ -134,6 +136,7 @@ class FirstStageReport:
     horizon_limit: str | None = None
     stages: list[StageReport] = field(default_factory=list)
     seconds: float = 0.0
+    interrupted: bool = False
     free_run_scale_before_em: float = math.nan
     free_run_scale_after_em: float = math.nan
     explained: float = math.nan
@@ -338,11 +341,14 @@ def _rmse(errors: Tensor) -> float:
 
 
 def _record_starts(model: StateSpaceModel, data: SequenceBatch) -> Tensor:
-    """Each record's free-run state path from ``x0_mean`` ``(T, B, nx)``, NaN-free: where the start's
-    simulation leaves the finite range, its states are replaced by ``x0_mean``."""
+    """Each record's free-run state path from ``x0_mean`` ``(T, B, nx)``, from where the start's
+    simulation diverges (non-finite, or beyond 1e6 times the prior's scale) on: ``x0_mean``, a
+    sane first state for the windows there."""
     states = free_run(model, data.u)[0]
     fallback = model.per_sequence("x0_mean", data.n_sequences).unsqueeze(0).expand_as(states)
-    bad = ~torch.isfinite(states).all(-1, keepdim=True)
+    scale = max(1.0, float(model.x0_mean.abs().max() + model.x0_cov.diagonal().sqrt().max()))
+    bad = ~torch.isfinite(states).all(-1, keepdim=True) | (states.abs() > 1e6 * scale).any(-1, keepdim=True)
+    bad = torch.cummax(bad.to(torch.uint8), dim=0).values.bool()  # from the first bad step on
     return torch.where(bad, fallback, states)
 
 
@@ -444,12 +450,16 @@ def simulation_error_fit(
     if params.size == 0:
         report.seconds = time.perf_counter() - clock
         return report
-    ladder.run(plan, report, "continuation", early_stop=horizons == "auto" and segment_length is None)
-    full = int(data.lengths.max())
-    explained = 1.0 - ladder.best[0] ** 2
-    if horizons == "auto" and segment_length is None and plan[0] < full and DIRECT_RANGE[0] <= explained < DIRECT_RANGE[1]:
-        params.assign(ladder.theta0)
-        ladder.run([full], report, "direct", early_stop=False)
+    auto = horizons == "auto" and segment_length is None
+    try:
+        ladder.run(plan, report, "continuation", early_stop=auto)
+        full = int(data.lengths.max())
+        explained = 1.0 - ladder.best[0] ** 2
+        if auto and plan[0] < full and DIRECT_RANGE[0] <= explained < DIRECT_RANGE[1]:
+            params.assign(ladder.theta0)
+            ladder.run([full], report, "direct", early_stop=False)
+    except KeyboardInterrupt:  # Ctrl-C: the best stage completed so far
+        report.interrupted = True
     judged, theta_best, window_x0, record_x0, horizon, errors = ladder.best
     report.seconds = time.perf_counter() - clock
     if window_x0 is None:  # no stage simulated the records better than the start
@@ -532,7 +542,8 @@ class _Ladder:
                 )
             )
             improved = judged < (1.0 - IMPROVEMENT) * self.best[0]
-            if judged < self.best[0] or (self.best[2] is None and math.isfinite(judged) and judged <= self.best[0]):
+            first = self.best[2] is None and math.isfinite(judged) and judged <= self.best[0]
+            if judged < self.best[0] or first:
                 self.best = (judged, theta.clone(), result.local.clone(), record_x0.clone(), horizon, errors)
             stale = 0 if improved else stale + 1
             previous = (spans, result.local, problem, horizon)

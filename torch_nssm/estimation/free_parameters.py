@@ -85,7 +85,9 @@ class FreeParameters:
             if lab == label
         }
 
-    def map(self, fn: Callable[..., Tensor], thetas: Tensor, *args: Tensor, batched: tuple[bool, ...] = ()) -> Tensor:
+    def map(
+        self, fn: Callable[..., Tensor], thetas: Tensor, *args: Tensor, batched: tuple[bool, ...] = ()
+    ) -> Tensor:
         """``fn(forward, *args)`` at each parameter vector of ``thetas`` ``(S, P)``, stacked ``(S, ...)``
         (a tuple of such when ``fn`` returns a tuple).
 

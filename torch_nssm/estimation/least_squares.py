@@ -184,7 +184,7 @@ def _normal_equations(J: list, r: Tensor, omega: Tensor, link_r, links: Links | 
         Eg = J[4][:-1] / links.scale.view(-1, 1) * mask  # (W-1, q, P), scaled by 1/total
         Ez = J[5][:-1] / links.scale.view(-1, 1)  # (W-1, q, q)
         inv_s = (1.0 / links.scale).expand_as(link_r)
-        A = A + torch.einsum("kqp,kqr,k->pr", J[4][:-1] / links.scale.view(-1, 1), Eg, torch.ones(len(Eg), dtype=r.dtype, device=r.device))
+        A = A + torch.einsum("kqp,kqr->pr", J[4][:-1] / links.scale.view(-1, 1), Eg)
         a = a + torch.einsum("kqp,kq->p", Eg, link_r)
         B = B.clone()
         B[:-1] += torch.einsum("kqp,kqr->kpr", Eg, Ez)
@@ -222,7 +222,9 @@ def _solve_windows(C: Tensor, O: Tensor | None, R: Tensor) -> Tensor:
     return torch.as_tensor(x.reshape(W, q, k), dtype=R.dtype, device=R.device)
 
 
-def _step(J: list, r: Tensor, omega: Tensor, link_r, links, total, lam: float) -> tuple[Tensor, Tensor, float]:
+def _step(
+    J: list, r: Tensor, omega: Tensor, link_r, links, total, lam: float
+) -> tuple[Tensor, Tensor, float]:
     """The damped Gauss-Newton step ``(dtheta, dlocal)`` by the Schur complement of the window
     blocks, and the decrease of the local quadratic model it predicts."""
     _, Jg, Jl = J[:3]

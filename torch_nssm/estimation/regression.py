@@ -13,7 +13,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-__all__ = ["RegressionRows", "SolverSettings", "SolverReport", "weighted_loss", "lbfgs", "adam", "gauss_newton"]
+__all__ = [
+    "RegressionRows", "SolverSettings", "SolverReport", "weighted_loss", "lbfgs", "adam", "gauss_newton",
+]
 
 
 @dataclass
@@ -138,7 +140,9 @@ def adam(module: nn.Module, params: list[Tensor], rows: RegressionRows, settings
     module.load_state_dict(best_state)
 
 
-def gauss_newton(module: nn.Module, params: list[Tensor], rows: RegressionRows, settings: SolverSettings) -> None:
+def gauss_newton(
+    module: nn.Module, params: list[Tensor], rows: RegressionRows, settings: SolverSettings
+) -> None:
     """Levenberg-Marquardt on the whitened weighted residuals (:mod:`.least_squares`), at most
     ``max_iter`` Jacobians: the M-step for modules with few parameters that are not linear in them
     (a physical model: a mass that divides, a friction inside a tanh).  Each Jacobian costs a few

@@ -11,6 +11,7 @@ every warning of a fit or a study from it.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -91,9 +92,23 @@ class EMRunner:
                 options.progress = None
             return run_em([model], data, options, generator)[0], stable
 
-    def rerun(self, start: Start, data: SequenceBatch) -> EMResult:
-        """EM again from ``start``'s model with the process noise held (the ``fit_Rw="auto"`` re-run)."""
-        return self(start, data, 0, progress=True, fit_Rw=False)[0]
+    def without_iterations(self) -> EMRunner:
+        """This runner with ``n_iter=0``: each run is the E-step at its start."""
+
+        def make_options(*args, **kwargs) -> EMOptions:
+            options = self.make_options(*args, **kwargs)
+            options.n_iter = 0
+            return options
+
+        return dataclasses.replace(self, make_options=make_options)
+
+    def evaluate(self, start: Start, model, data: SequenceBatch) -> EMResult:
+        """No EM iteration: the final E-step at ``model`` (with ``start``'s particle seed)."""
+        with limited_threads(self.n_threads):
+            _, generator, _ = start.run_start(0, data, self.device)
+            options = self.make_options(None, fit_Rw=False)
+            options.n_iter, options.progress = 0, None
+            return run_em([model], data, options, generator)[0]
 
 
 def fit_runs(runner: EMRunner, start: Start, data: SequenceBatch, n_jobs: int | None) -> list[tuple]:
@@ -147,6 +162,8 @@ class RunOutcome:
     rejections : list of Rejection
     stable_start : bool
         Its start's noise-free simulation stayed bounded (False: no jittered draw did).
+    halted : str or None
+        Why EM stopped at a good iterate before converging (:attr:`~.loop.EMResult.halted`).
     """
 
     error: str | None
@@ -157,6 +174,7 @@ class RunOutcome:
     log_likelihood: float
     rejections: list[Rejection] = field(default_factory=list)
     stable_start: bool = True
+    halted: str | None = None
 
     @classmethod
     def of(cls, result: EMResult, stable_start: bool = True) -> RunOutcome:
@@ -169,6 +187,7 @@ class RunOutcome:
             result.log_likelihood,
             rejections_of(result),
             stable_start,
+            result.halted,
         )
 
 

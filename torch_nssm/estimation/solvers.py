@@ -39,12 +39,23 @@ SOLVERS: dict[str, Solver] = {
 }
 
 
+#: ``optimizer="auto"`` takes Gauss-Newton for modules with at most this many free parameters (a
+#: physical model), LBFGS for more (a network: its Jacobian would cost one evaluation a parameter).
+GAUSS_NEWTON_MAX_PARAMETERS = 64
+
+
+def auto_solver(module: nn.Module) -> str:
+    """The solver ``optimizer="auto"`` takes for ``module``."""
+    n = sum(p.numel() for p in module.parameters() if p.requires_grad)
+    return "gauss-newton" if n <= GAUSS_NEWTON_MAX_PARAMETERS else "lbfgs"
+
+
 def get_solver(name: str) -> Solver:
     """The gradient solver registered as ``name``."""
     try:
         return SOLVERS[name]
     except KeyError:
-        raise ValueError(f"optimizer must be one of {sorted(SOLVERS)}, got {name!r}") from None
+        raise ValueError(f"optimizer must be one of {sorted([*SOLVERS, 'auto'])}, got {name!r}") from None
 
 
 def fit_weighted_regression(
@@ -67,7 +78,7 @@ def fit_weighted_regression(
     if hasattr(module, "solve_weighted_least_squares"):
         module.solve_weighted_least_squares(rows.x, rows.u, rows.target, rows.weight, rows.precision)
     else:
-        get_solver(optimizer)(module, params, rows, settings)
+        get_solver(auto_solver(module) if optimizer == "auto" else optimizer)(module, params, rows, settings)
     for p in params:
         p.grad = None
     with torch.no_grad():

@@ -42,7 +42,6 @@ __all__ = [
     "seeded_generator",
     "copy_model",
     "CAUCHY_TUNING",
-    "FIRST_STAGE_WINDOW",
     "SIMULATION_R2_FLOOR",
     "SIMULATION_TOLERANCE",
 ]
@@ -50,15 +49,18 @@ __all__ = [
 #: Tuning constant of the Cauchy weights (95 % efficiency at the normal).
 CAUCHY_TUNING = 2.385
 
-#: Window of the first stage's multiple shooting (samples).
-FIRST_STAGE_WINDOW = 50
-
 #: ``first_stage="auto"`` keeps the first stage only when its noise-free simulation explains at
-#: least this share of ``y`` (robust R²): a simulation model.  Below it the process noise dominates.
+#: least this share of ``y`` (robust R²).  Below it the process noise dominates.
 SIMULATION_R2_FLOOR = 0.5
 
-#: How much worse than the first stage's (robust scale of the training free-run errors) EM may
-#: leave the simulation before ``fit_Rw="auto"`` holds the process noise.
+#: A kept first stage whose simulation explains at least this share of ``y`` (robust R²) is a
+#: simulation model (``focus="simulation"`` holds its process noise).  The suite's physical plants
+#: explain 0.98-0.999 at the first stage, the paper's Section 4.1 example (process noise about as
+#: large as the measurement noise) 0.59-0.73: there the process noise is part of the model.
+SIMULATION_MODEL_R2 = 0.9
+
+#: How much worse than the first stage's (robust scale of the training free-run errors) a fit that
+#: estimated the process noise may leave the simulation before the report says so.
 SIMULATION_TOLERANCE = 1.1
 
 #: Draws of a jittered restart before the last one is taken even though its simulation diverges.
@@ -82,6 +84,11 @@ class StartSettings:
         Seeds the runs (:func:`restart_seeds`).
     warm : bool
         A warm start: no first stage, and no warning about the start's simulation.
+    focus : {"simulation", "prediction"}
+        What the model is for (:func:`plan_start`).
+    fit_Rw : bool or "auto"
+    Rw_given, Rv_given : bool
+        Whether the user gave ``Rw_init`` / ``Rv_init`` (else the start sizes them from the data).
     """
 
     first_stage: str | None
@@ -90,6 +97,10 @@ class StartSettings:
     init_jitter: float
     random_state: Any
     warm: bool = False
+    focus: str = "simulation"
+    fit_Rw: bool | str = "auto"
+    Rw_given: bool = True
+    Rv_given: bool = True
 
 
 @dataclass
@@ -116,6 +127,11 @@ class Start:
         A copy of the kept first stage's model (the start of the ``fit_Rw="auto"`` re-run).
     staged_run : (Tensor, Tensor) or None
         Noise-free ``(states, outputs)`` of the kept first stage's model.
+    fit_Rw : bool or None
+        Overrides the estimator's ``fit_Rw`` in the EM runs: False for a simulation model whose
+        process noise the start holds small (:func:`plan_start`); ``None``: the estimator's.
+    interrupted : bool
+        Ctrl-C came during the first stage: the start is its best stage so far, and no EM runs.
     """
 
     model: StateSpaceModel
@@ -127,6 +143,8 @@ class Start:
     divergent_step: int | None = None
     staged: StateSpaceModel | None = None
     staged_run: tuple | None = field(default=None, repr=False)
+    fit_Rw: bool | None = None
+    interrupted: bool = False
 
     def run_start(self, r: int, data: SequenceBatch, device: torch.device) -> tuple:
         """EM run ``r``'s start, its particle generator and whether its simulation stays bounded:
@@ -140,27 +158,83 @@ class Start:
         model, stable = stable_jitter(self.model, self.init_jitter, rs, data, self.limit)
         return model, generator, stable
 
-    def held(self, Rw: torch.Tensor) -> Start:
-        """The start of the ``fit_Rw="auto"`` re-run: the first stage's model with ``Rw`` held."""
-        return replace(self, model=replace(self.staged, Rw=Rw))
-
 
 def plan_start(
     model: StateSpaceModel, data: SequenceBatch, settings: StartSettings, *, restarts: bool = True
 ) -> Start:
-    """The start of a fit's EM runs: the first stage (when it runs, and kept or not), the divergence
-    limit of the restarts and their seeds (``restarts=False``: neither, for a study's data set,
-    whose one run starts at :attr:`Start.model`)."""
+    """The start of a fit's EM runs: the first stage (when it runs, and kept or not), the noise
+    parameters' starting values and whether EM holds the process noise, the divergence limit of the
+    restarts and their seeds (``restarts=False``: neither, for a study's data set, whose one run
+    starts at :attr:`Start.model`).
+
+    A kept first stage whose free run explains at least :data:`SIMULATION_MODEL_R2` of ``y`` is a
+    simulation model: with ``focus="simulation"`` and ``fit_Rw="auto"`` EM holds its process noise
+    small (:func:`held_process_noise`) and estimates the measurement noise (from the first stage's
+    output errors when ``Rv_init`` is not given), the outlier weights, ``g`` and the first state, so
+    that the tracking a free process noise allows cannot spoil the simulation.  Otherwise the
+    process noise carries a share of ``y`` that no simulation explains, and EM estimates it from
+    :func:`scaled_process_noise` (when ``Rw_init`` is not given).
+    """
     start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
     if runs_first_stage(model, settings):
         start.first_stage, kept_run, start.model = first_stage_start(model, data, settings.first_stage)
+        start.interrupted = start.first_stage.interrupted
         start.first_stage_unimproved = not start.first_stage.accepted and settings.first_stage != "auto"
         if kept_run is not None:
             start.staged, start.staged_run = copy_model(start.model), kept_run
+    simulation_model = start.staged is not None and start.first_stage.explained >= SIMULATION_MODEL_R2
+    if simulation_model and settings.focus == "simulation" and settings.fit_Rw == "auto":
+        start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
+        start.staged = copy_model(start.model)
+        start.fit_Rw = False
+    elif not settings.Rw_given and not settings.warm:
+        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data))
     if restarts:
         start.limit, start.divergent_step = divergence_limit(start.model, data, check=not settings.warm)
         start.seeds = restart_seeds(settings.random_state, settings.n_runs)
     return start
+
+
+#: A process noise not given starts at this fraction of the variance of each state's change per step
+#: along the start's noise-free simulation (a slowly varying state gets a small one).
+PROCESS_NOISE_SHARE = 0.1
+
+
+@torch.no_grad()
+def scaled_process_noise(model: StateSpaceModel, data: SequenceBatch) -> torch.Tensor:
+    """``PROCESS_NOISE_SHARE`` times the variance of each state's increment along the model's
+    noise-free simulation (diagonal); where that simulation is not finite or does not move a
+    state, that state keeps the given ``Rw``'s diagonal entry."""
+    states = prediction.free_run(model, data.u)[0]
+    steps = [x[1:] - x[:-1] for x in data.unpad(states) if x.shape[0] > 1]
+    given = torch.diagonal(model.Rw)
+    if not steps:
+        return model.Rw
+    d = torch.cat(steps)
+    d = d[torch.isfinite(d).all(-1)]
+    if d.shape[0] < 2:
+        return model.Rw
+    var = PROCESS_NOISE_SHARE * d.var(0)
+    ok = torch.isfinite(var) & (var > 0)
+    return torch.diag(torch.where(ok, var, given))
+
+
+@torch.no_grad()
+def simulation_start(
+    model: StateSpaceModel, data: SequenceBatch, run: tuple, Rv_given: bool
+) -> StateSpaceModel:
+    """EM's start for a simulation model: the process noise held small along the first stage's
+    simulation ``run`` (states, outputs), and, unless given, the measurement noise's scale from the
+    robust spread (1.4826 MAD about 0) of that simulation's output errors."""
+    start = replace(model, Rw=held_process_noise(run[0], data))
+    if Rv_given:
+        return start
+    errors = torch.cat(data.unpad(data.y - run[1])).cpu().numpy()
+    spread = robust_scale(errors, axis=0, center=0.0)
+    current = torch.diagonal(model.Rv).cpu().numpy()
+    var = np.where(np.isfinite(spread) & (spread > 0), spread**2, current)
+    Rv = torch.diag(torch.as_tensor(var, dtype=model.Rv.dtype, device=model.Rv.device))
+    return replace(start, noise=start.noise.replace(Rv=Rv))
 
 
 def runs_first_stage(model: StateSpaceModel, settings: StartSettings) -> bool:
@@ -178,11 +252,10 @@ def first_stage_start(
     """The robust simulation-error fit from ``model``: its report, the noise-free simulation
     ``(states, outputs)`` of its result if that is kept (else ``None``), and EM's start."""
     given = copy_model(model)
-    report = simulation_error_fit(model, data, segment_length=FIRST_STAGE_WINDOW)
+    report = simulation_error_fit(model, data)
     if not report.accepted:
         return report, None, given
-    starts = report.first_states[torch.as_tensor(first_windows(data, FIRST_STAGE_WINDOW))]
-    staged = replace(model, x0_mean=starts.mean(0))
+    staged = replace(model, x0_mean=report.record_states.mean(0))
     run = prediction.free_run(staged, data.u)
     report.explained = explained_share(run[1], data)
     if keep_first_stage(report, mode):
@@ -205,15 +278,6 @@ def explained_share(outputs: torch.Tensor, data: SequenceBatch) -> float:
     """Robust R² of time-major ``outputs`` ``(T, B, p)`` against ``y``."""
     yt = torch.cat(data.unpad(data.y)).cpu().numpy()
     return float(robust_r2_score(yt, torch.cat(data.unpad(outputs)).cpu().numpy()))
-
-
-def first_windows(data: SequenceBatch, window: int) -> list[int]:
-    """Index, among all windows, of each record's first window (as the first stage orders them)."""
-    out, i = [], 0
-    for n in data.lengths.tolist():
-        out.append(i)
-        i += sum(1 for s in range(0, n, window) if min(s + window, n) - s >= 2)
-    return out
 
 
 def divergence_limit(model: StateSpaceModel, data: SequenceBatch, check: bool) -> tuple[float, int | None]:
@@ -310,22 +374,17 @@ class SimulationCheck:
     ----------
     before, after : float
         Robust scale of the training free-run errors after the first stage and after EM.
-    outcome : {"kept", "worse", "held", "not better"}
-        ``"kept"``: EM simulates within ``SIMULATION_TOLERANCE`` of the first stage (or no
-        finite scale); ``"worse"``: it does not and ``fit_Rw`` is not ``"auto"`` (nothing rerun);
-        ``"held"``: EM ran again from the first stage with the process noise held and that fit
-        is kept; ``"not better"``: that re-run did not simulate better and the fit stays.
-    held_Rw : Tensor or None
-        The process noise of the re-run.
-    held_scale : float
-        Robust scale of the re-run's free-run errors (NaN without a re-run or a result).
+    outcome : {"kept", "worse", "reverted", "interrupted"}
+        ``"kept"``: EM simulates as well as the first stage (a simulation model) or within
+        ``SIMULATION_TOLERANCE`` of it (a fit that estimated the process noise); ``"worse"``: a fit
+        that estimated the process noise simulates worse than that; ``"reverted"``: a simulation
+        model's EM simulated worse, and its ``f`` and ``g`` are the first stage's;
+        ``"interrupted"``: Ctrl-C stopped EM.
     """
 
     before: float
     after: float
     outcome: str = "kept"
-    held_Rw: torch.Tensor | None = None
-    held_scale: float = math.nan
 
 
 def free_run_scale(outputs: torch.Tensor, data: SequenceBatch) -> float:
@@ -336,30 +395,39 @@ def free_run_scale(outputs: torch.Tensor, data: SequenceBatch) -> float:
 
 
 def check_simulation(
-    start: Start, best, free_run_outputs: torch.Tensor, data: SequenceBatch, fit_Rw, rerun: Callable
+    start: Start, best, free_run_outputs: torch.Tensor, data: SequenceBatch, evaluate: Callable
 ) -> tuple[SimulationCheck, Any, torch.Tensor]:
     """Compare the EM fit ``best`` (an ``EMResult``; ``free_run_outputs``: its noise-free outputs)
-    with the kept first stage's simulation; under ``fit_Rw="auto"``, when EM made it more than
-    ``SIMULATION_TOLERANCE`` worse, ``rerun(start.held(Rw))`` (EM with the process noise held)
-    and keep the run that simulates better.  Returns the check, the kept run and its outputs;
-    ``start.first_stage`` records the scales."""
+    with the kept first stage's simulation.
+
+    A simulation model (EM held the process noise, :attr:`Start.fit_Rw` False) whose EM made the
+    simulation of the training records worse at all gets the first stage's ``f`` and ``g`` back,
+    with EM's noise parameters and first state (``evaluate(model)``: its E-step; outcome
+    ``"reverted"``).  A fit that estimated the process noise is only compared (outcome ``"worse"``
+    beyond ``SIMULATION_TOLERANCE`` where the first stage was a simulation model: ``focus`` or
+    ``fit_Rw`` asked for the process noise); a run stopped by Ctrl-C too (``"interrupted"``).
+
+    Returns the check, the kept run and its outputs; ``start.first_stage`` records the scales."""
     before = free_run_scale(start.staged_run[1], data)
     after = free_run_scale(free_run_outputs, data)
     start.first_stage.free_run_scale_before_em = before
     start.first_stage.free_run_scale_after_em = after
     check = SimulationCheck(before, after)
-    if not (np.isfinite(after) and after > SIMULATION_TOLERANCE * before):
+    if best.interrupted:
+        check.outcome = "interrupted"
         return check, best, free_run_outputs
-    if fit_Rw != "auto":
-        check.outcome = "worse"
+    if start.fit_Rw is not False:  # said only where a simulation model was there to keep
+        simulation_model = start.first_stage.explained >= SIMULATION_MODEL_R2
+        if simulation_model and np.isfinite(after) and after > SIMULATION_TOLERANCE * before:
+            check.outcome = "worse"
         return check, best, free_run_outputs
-    check.held_Rw = held_process_noise(start.staged_run[0], data)
-    held = rerun(start.held(check.held_Rw))
-    outputs = prediction.free_run(held.model, data.u)[1] if held.estep is not None else None
-    check.held_scale = free_run_scale(outputs, data) if outputs is not None else math.nan
-    if held.error is not None or not np.isfinite(check.held_scale) or check.held_scale >= after:
-        check.outcome = "not better"
+    if np.isfinite(after) and after <= before:
         return check, best, free_run_outputs
-    check.outcome = "held"
-    start.first_stage.free_run_scale_after_em = check.held_scale
-    return check, held, outputs
+    model = replace(best.model, f=copy.deepcopy(start.staged.f), g=copy.deepcopy(start.staged.g))
+    reverted = evaluate(model)
+    if reverted.estep is None:
+        return check, best, free_run_outputs
+    reverted.history, reverted.n_done, reverted.converged = best.history, best.n_done, best.converged
+    check.outcome = "reverted"
+    start.first_stage.free_run_scale_after_em = before
+    return check, reverted, start.staged_run[1]

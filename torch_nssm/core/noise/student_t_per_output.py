@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, standard_gamma, step_views
-from .student_t import check_dof_init, latent_scale_expectations, solve_dof
+from .student_t import check_dof_init, dof_relative_standard_error, latent_scale_expectations, solve_dof
 
 __all__ = ["StudentTPerOutputNoise"]
 
@@ -102,6 +102,11 @@ class StudentTPerOutputNoise(MeasurementNoise):
             new = solve_dof(stats["dof_c"] / n.clamp_min(1), *dof_bounds).to(self.dof)
             dof = torch.where(seen, new, self.dof)
         return self.replace(Rv=torch.diag_embed(var), dof=dof)
+
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        scales = super().convergence_scales(n_obs)
+        scales["dof"] = dof_relative_standard_error(self.dof, 1, n_obs)
+        return scales
 
     def sample(self, shape, generator=None) -> Tensor:
         p = self.Rv.shape[-1]
