@@ -16,6 +16,7 @@ import importlib
 __all__ = [
     "RobustNSSMEstimator",
     "LinearInParameters",
+    "ContinuousTimeTransition",
     "StateEstimate",
     "NumericalError",
     "fit_independent",
@@ -25,6 +26,7 @@ __all__ = [
     "diagnostics",
     "models",
     "neural",
+    "noise",
     "plotting",
     "warm_start",
 ]
@@ -34,6 +36,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "RobustNSSMEstimator": (".estimator", "RobustNSSMEstimator"),
     "LinearInParameters": (".core.parametric", "LinearInParameters"),
+    "ContinuousTimeTransition": (".blocks.continuous", "ContinuousTimeTransition"),
     "StateEstimate": (".inference.results", "StateEstimate"),
     "NumericalError": (".inference.filtering", "NumericalError"),
     "fit_independent": (".estimator", "fit_independent"),
@@ -43,6 +46,7 @@ _LAZY = {
     "diagnostics": (".diagnostics", None),
     "models": (".models", None),
     "neural": (".neural", None),
+    "noise": (".noise", None),
     "plotting": (".plotting", None),
     "warm_start": (".warm_start", None),
 }

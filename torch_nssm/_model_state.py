@@ -24,7 +24,7 @@ from . import _validation as V
 from ._stats import robust_scale
 from ._threads import limited_threads
 from .core.model import SequenceBatch, StateSpaceModel
-from .core.noise import get_noise_model, symmetric_pd
+from .core.noise import MeasurementNoise, NoiseSpec, symmetric_pd
 from .estimation.estep import latent_scales, outlier_weights
 from .estimation.start import seeded_generator
 from .inference import prediction
@@ -66,7 +66,7 @@ class ModelState:
         g = copy.deepcopy(self.g).to(**kw)
         V.check_data_against_model(data, f, g, nu, p)
         V.check_module_shapes(f, g, nx, nu, p, **kw)
-        noise = get_noise_model(self.noise).initial(Rv, float(self.dof_init))
+        noise = self._noise_spec().initial(Rv)
         return StateSpaceModel(f, g, Rw, noise, x0_mean, x0_cov)
 
 
@@ -74,16 +74,17 @@ class ModelState:
         self.f_ = model.f
         self.g_ = model.g
         self.Rw_ = model.Rw.detach().cpu().numpy()
-        self.Rv_ = model.Rv.detach().cpu().numpy()
-        dof = getattr(model.noise, "dof", None)
-        if dof is None:
-            self.dof_ = math.inf
-        else:
-            self.dof_ = float(dof) if dof.dim() == 0 else dof.detach().cpu().numpy()
+        noise = model.noise.attributes()  # Rv_, dof_, ...: the noise family's
+        for name in set(self.__dict__.get("_noise_attributes", ())) - set(noise):
+            self.__dict__.pop(f"{name}_", None)  # another family's, from an earlier fit
+        for name, value in noise.items():
+            setattr(self, f"{name}_", value)
+        self._noise_attributes = tuple(noise)
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
-        ow = outlier_weights(estep.smoother.log_weights, estep.e_lam, data)
+        per_component = model.noise.per_component
+        ow = outlier_weights(estep.smoother.log_weights, estep.e_lam, data, per_component=per_component)
         self.outlier_weights_ = ow if multi else ow[0]
         self.log_likelihood_ = float(estep.log_likelihood.sum())
         self.n_iter_ = n_done
@@ -107,13 +108,11 @@ class ModelState:
         (see :meth:`_initial_states`)."""
         kw = dict(dtype=self.dtype, device=device)
         t = lambda a: torch.as_tensor(a, **kw)  # noqa: E731
-        family = get_noise_model(self.noise)
-        noise = family(**{name: t(getattr(self, f"{name}_")) for name in family.CORE_DIMS})
         model = StateSpaceModel(
             copy.deepcopy(self.f_).to(**kw),
             copy.deepcopy(self.g_).to(**kw),
             t(self.Rw_),
-            noise,
+            self._fitted_noise(device),
             t(self.x0_mean_),
             t(self.x0_cov_),
         )
@@ -121,6 +120,20 @@ class ModelState:
             return model
         mean, cov = self._initial_states(model, data, x0, random_state)
         return replace(model, x0_mean=mean, x0_cov=cov)
+
+    def _noise_spec(self) -> NoiseSpec:
+        """The measurement noise's specification (:func:`~torch_nssm._parameters.noise_of`)."""
+        from ._parameters import noise_of
+
+        return noise_of(self)
+
+    def _fitted_noise(self, device="cpu") -> MeasurementNoise:
+        """The fitted measurement noise on ``device``: its family's parameters from the fitted
+        attributes ``<name>_``."""
+        spec = self._noise_spec()
+        kw = dict(dtype=self.dtype, device=device)
+        names = spec.noise_model.CORE_DIMS
+        return spec.state(**{n: torch.as_tensor(getattr(self, f"{n}_"), **kw) for n in names})
 
     def _initial_states(self, model: StateSpaceModel, data: SequenceBatch, x0, random_state=None) -> tuple:
         """Prior mean and covariance of the first state of each record of ``data`` for ``x0``:
@@ -198,7 +211,7 @@ class ModelState:
                 est = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
                     model, data, est, fit_Rw=self._fitted_Rw(), fit_Rv=bool(self.fit_Rv),
-                    fit_dof=bool(self.fit_dof), generator=self._generator(data.y.device),
+                    generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
         for message in self._uncertainty.warnings() if warn else ():
@@ -247,7 +260,7 @@ class ModelState:
         else:
             filt = self._filter(model, data, gen)
             log_w, e_lam = filt.log_weights, latent_scales(model, data, filt)[0]
-        ow = outlier_weights(log_w, e_lam, data)
+        ow = outlier_weights(log_w, e_lam, data, per_component=model.noise.per_component)
         mean, cov = smoothed_moments(filt.particles, log_w)
         out = []
         for b, n in enumerate(data.lengths.tolist()):

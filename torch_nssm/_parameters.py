@@ -16,7 +16,7 @@ import torch
 from torch import nn
 
 from . import _validation as V
-from .core.noise import NOISE_MODELS
+from .core.noise import NOISE_SHORTCUTS, NoiseSpec, noise_spec
 from .estimation.estep import EStepOptions
 from .estimation.loop import EMOptions
 from .estimation.mstep import MStepOptions
@@ -78,15 +78,6 @@ def unit_interval(value, name: str, _) -> None:
         raise ValueError(f"{name} must lie in [0, 1], got {value!r}")
 
 
-def bracket(value, name: str, _) -> None:
-    try:
-        lo, hi = (float(b) for b in value)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be a pair (low, high), got {value!r}") from exc
-    if not 0 < lo < hi:
-        raise ValueError(f"{name} must satisfy 0 < low < high, got {value!r}")
-
-
 def options_of_smoother(value, name: str, estimator) -> None:
     if not isinstance(value, dict):
         raise TypeError(f"{name} must be a dict, got {type(value).__name__}")
@@ -121,7 +112,7 @@ def module(value, name: str, _) -> None:
 
 #: Parameter -> check, in the order they run.
 PARAMETER_CHECKS: dict[str, Check] = {
-    "noise": choice(sorted(NOISE_MODELS)),
+    "noise": lambda value, name, estimator: noise_of(estimator) and None,
     "optimizer": choice(sorted([*SOLVERS, "auto"])),
     "smoother": choice(sorted(SMOOTHERS)),
     "first_stage": optional(choice(["auto", "simulation"])),
@@ -139,10 +130,8 @@ PARAMETER_CHECKS: dict[str, Check] = {
     "max_iter_mstep": integer(1),
     "learning_rate": positive,
     "batch_size": optional(integer(1)),
-    "dof_init": positive,
     "warm_start": boolean,
     "ess_threshold": unit_interval,
-    "dof_bounds": bracket,
     "chunk_size": optional(integer(1)),
     "segment_length": optional(integer(1)),
     "segment_overlap": integer(1),
@@ -154,6 +143,12 @@ PARAMETER_CHECKS: dict[str, Check] = {
     "f": module,
     "g": module,
 }
+
+
+def noise_of(estimator) -> NoiseSpec:
+    """The measurement noise's specification: ``noise``, with the shortcut parameters forwarded
+    to its family (:func:`~torch_nssm.core.noise.noise_spec`; it checks them)."""
+    return noise_spec(estimator.noise, **{name: getattr(estimator, name) for name in NOISE_SHORTCUTS})
 
 
 def check_parameters(estimator) -> torch.device:
@@ -206,8 +201,6 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
                 batch_size=estimator.batch_size,
                 generator=estimator._generator(torch.device("cpu")),
             ),
-            fit_dof=bool(estimator.fit_dof),
-            dof_bounds=tuple(float(b) for b in estimator.dof_bounds),
             fit_x0=bool(estimator.fit_x0),
             fit_Rw=bool(estimator.fit_Rw) if fit_Rw is None else fit_Rw,
             fit_Rv=bool(estimator.fit_Rv),

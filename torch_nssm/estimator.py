@@ -19,21 +19,17 @@ from sklearn.base import BaseEstimator, RegressorMixin
 from torch import nn
 
 from . import _validation as V
-from ._model_state import INITIAL_SAMPLES, ModelState, default_rv_init
+from ._model_state import ModelState
 from ._module_params import ModuleParams
 from ._parameters import DEFAULT_PARTICLES, SIMULATION_PARTICLES, check_parameters, em_options
 from ._threads import with_thread_limit
 from .core.model import SequenceBatch
+from .core.noise import NoiseSpec
 from .diagnostics import fit_warnings
-from .diagnostics.fit_warnings import DOF_FLOOR, DOWNWEIGHTED_SHARE, EXPLAINED_FLOOR
-from .diagnostics.fit_warnings import noise_absorbing_message as _noise_absorbing_message
 from .estimation.estep import e_step
 from .estimation.loop import EMOptions
 from .estimation.runs import EMRunner, FitReport, RunOutcome, fit_runs
 from .estimation.start import (
-    CAUCHY_TUNING,
-    SIMULATION_R2_FLOOR,
-    SIMULATION_TOLERANCE,
     StartSettings,
     check_simulation,
     plan_start,
@@ -44,11 +40,6 @@ from .studies import fit_independent
 
 __all__ = ["RobustNSSMEstimator", "fit_independent"]
 
-#: Constants of the start policy and the fit warnings, importable from here as before they moved.
-_MOVED = (
-    CAUCHY_TUNING, SIMULATION_R2_FLOOR, SIMULATION_TOLERANCE, INITIAL_SAMPLES,
-    DOF_FLOOR, DOWNWEIGHTED_SHARE, EXPLAINED_FLOOR, default_rv_init, _noise_absorbing_message,
-)
 
 
 class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimator):
@@ -88,16 +79,22 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         spread of the first stage's output errors, else ``0.02 * diag(s^2)``, ``s`` a robust
         spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
     dof_init : float, default=5.0
-        Initial degrees of freedom of the Student-t noise.
-    noise : {"student-t", "gaussian", "student-t-per-output"}, default="student-t"
-        Measurement-noise model: the multivariate Student-t (one outlier weight per sample),
-        ``"gaussian"`` (the non-robust baseline, Gopaluni 2008), or ``"student-t-per-output"``
-        (independent t per output with diagonal ``Rv`` and one ``dof`` per output: a glitch in one
-        sensor down-weights only that sensor).
+        Initial degrees of freedom of the Student-t noise (one per output, or one for all, for
+        ``"student-t-per-output"``): a shortcut for the family's option, see ``noise``.
+    noise : str or noise specification, default="student-t"
+        Measurement-noise model (docs/noise_models.md): ``"student-t"``, the multivariate Student-t
+        (one outlier weight per sample); ``"gaussian"`` (the non-robust baseline, Gopaluni 2008);
+        ``"student-t-per-output"`` (independent t per output with diagonal ``Rv`` and one ``dof``
+        per output: a glitch in one sensor down-weights only that sensor); or a family registered
+        with :func:`torch_nssm.noise.register_noise_model`.  A name takes its options from the
+        shortcuts ``dof_init``, ``fit_dof`` and ``dof_bounds`` (families without degrees of
+        freedom ignore them).  Or a specification object with its options, e.g.
+        ``torch_nssm.noise.StudentT(dof=3.0, fit_dof=False)``, ``StudentTPerOutput(...)``,
+        ``Gaussian()``; the shortcuts must then keep their defaults (``ValueError`` otherwise).
     fit_dof : bool, default=True
-        Estimate the DOF; if False it stays at ``dof_init``.
+        Estimate the DOF; if False it stays at ``dof_init`` (a shortcut, see ``noise``).
     dof_bounds : (float, float), default=(0.1, 1000.0)
-        Bracket of the DOF root-solve.
+        Bracket of the DOF root-solve (a shortcut, see ``noise``).
     fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
         the physics).  ``"auto"``: held small for a simulation model (``focus``); otherwise
@@ -233,7 +230,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     Rw_ : ndarray of shape (nx, nx)
     Rv_ : ndarray of shape (p, p)
     dof_ : float, or ndarray of shape (p,)
-        ``inf`` for Gaussian noise; one per output for ``"student-t-per-output"``.
+        ``inf`` for Gaussian noise; one per output for ``"student-t-per-output"``.  Each parameter
+        of the noise family is a fitted attribute ``<name>_`` (``Rv_``, ``dof_``, ...).
     x0_mean_ : ndarray of shape (nx,)
     x0_cov_ : ndarray of shape (nx, nx)
     history_ : dict of str to ndarray
@@ -281,7 +279,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         Rw_init=None,
         Rv_init=None,
         dof_init: float = 5.0,
-        noise: str = "student-t",
+        noise: str | NoiseSpec = "student-t",
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
         fit_Rw: bool | str = "auto",
@@ -438,7 +436,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         self.fit_Rw_ = self._fitted_Rw() if warm else bool(asked)
         best, outputs = self._kept_simulation(start, best, data, runner, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
-        report.describe_kept(best, data, outputs, self.dof_, self.outlier_weights_)
+        report.describe_kept(best, data, outputs, self.outlier_weights_)
         fit_warnings.warn_fit(report, stacklevel=3)
         return self
 
@@ -698,6 +696,16 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
 
         options = dict(max_lag=max_lag, horizon=horizon, level=level, robust=robust)
         return residual_analysis(self, u, y, random_state=random_state, **options)
+
+    def compare(self, u, y, *, horizon: int | None = None, x0=None, robust: bool = False, random_state=None):
+        """The predicted outputs of a record beside the measured ones, with the fit in percent per
+        output, as MATLAB's ``compare`` (:func:`torch_nssm.evaluation.compare`;
+        ``plotting.plot_compare`` draws it).  ``robust=True`` leaves out the samples flagged as
+        outliers (smoothed outlier weight below 0.5)."""
+        from .evaluation import compare
+
+        options = dict(horizon=horizon, x0=x0, robust=robust, random_state=random_state)
+        return compare(self, u, y, **options)
 
     @with_thread_limit
     def initial_state(self, u, y, *, random_state=None):

@@ -34,8 +34,9 @@ from torch import Tensor, nn
 from .. import _validation as V
 from .._parameters import particles_of
 from .._stats import robust_scale
-from ..core.noise import NOISE_MODELS
+from ..core.noise import noise_spec, restart_parameters
 from ..estimator import RobustNSSMEstimator
+from .continuous import ContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import GreyBoxTransition, MLPObservation, MLPTransition
 
@@ -305,7 +306,7 @@ def warm_start_estimator(
         The reference observation.  Default: ``g`` itself when it has a closed-form M-step or no
         free parameters; a :class:`LinearObservation` (scaled by a robust spread of ``y``) for an
         :class:`~torch_nssm.neural.MLPObservation`; ``g`` itself otherwise.
-    noise : {"student-t", "gaussian"}, optional
+    noise : str or noise specification, optional
         Measurement-noise model of the reference fit; default the estimator's.
     n_iter : int, default=20
         EM iterations of the reference fit.
@@ -326,7 +327,8 @@ def warm_start_estimator(
     -------
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
-        ``Rv_init`` (and ``dof_init`` for Student-t noise) set from the reference; unfitted.
+        ``Rv_init`` and the noise family's other initial values (when the reference fitted the
+        estimator's family) set from the reference; unfitted.
     WarmStartInfo
         Only with ``return_info=True``.
 
@@ -417,8 +419,9 @@ def _warm(estimator, reference, f_new, g_new):
         Rw_init=reference.Rw_.copy(),
         Rv_init=reference.Rv_.copy(),
     )
-    if estimator.noise == "student-t" and math.isfinite(reference.dof_):
-        params["dof_init"] = float(reference.dof_)
+    fitted = reference._fitted_noise()
+    if fitted.name == estimator._noise_spec().name:  # the reference fitted the estimator's family
+        params.update(restart_parameters(estimator.noise, fitted))
     return clone(estimator).set_params(**params)
 
 
@@ -431,7 +434,7 @@ def _check_arguments(estimator, reference_f, reference_g, noise, n_iter, n_parti
                 f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
             )
     if noise is not None:
-        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
+        noise_spec(noise)
     V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
     if n_particles is not None:
         V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
@@ -499,7 +502,8 @@ def _transition(f, action: str, reference, x_now, u_now, x_next, X, U, distill_i
         f_new.physical.load_state_dict(reference.f_.state_dict())
         f_new.fit_normalisation(x_now, u_now, x_next=x_next)
     elif action == "distilled":
-        if isinstance(f_new, (MLPTransition, GreyBoxTransition)):
+        neural_ode = isinstance(f_new, ContinuousTimeTransition) and hasattr(f_new.rhs, "fit_normalisation")
+        if isinstance(f_new, (MLPTransition, GreyBoxTransition)) or neural_ode:
             f_new.fit_normalisation(x_now, u_now, x_next=x_next)
         f_error = distill(f_new, reference.f_, X, U, baseline=X, max_iter=distill_iter)
     return f_new, f_error

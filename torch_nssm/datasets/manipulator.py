@@ -294,9 +294,8 @@ def make_manipulator(
     column is ``u_k = F(t_k)``, ``t_k = k dt``, ``F(t) = 10 sin(0.02 pi t)`` N.  State
     ``x = [dphi1, dphi2, phi1, phi2]``; ``x_{k+1} = (I + dt A(t_k; theta)) x_k + w_k`` (eq. 54)
     with ``theta1, theta2`` in the lower-left block of ``A``; output ``y_k = [phi1, phi2] + v_k``
-    (eq. 55).  The physical constants are our choice (see :class:`ManipulatorConstants` and the
-    ``MANIPULATOR_*`` module constants).  A ``RuntimeWarning`` is issued when the Euler step is
-    unstable (spectral radius above 1) for some force in the record.
+    (eq. 55).  The physical constants are our choice (:class:`ManipulatorConstants`, the
+    ``MANIPULATOR_*`` constants).  A ``RuntimeWarning`` says when the Euler step is unstable.
 
     Outliers are added to both angles of the chosen samples.
 
@@ -345,7 +344,10 @@ def make_manipulator(
     Rw_m = V.check_covariance_array(Rw, "Rw", 4)
     Rv_m = V.check_covariance_array(Rv, "Rv", 2)
     noise = V.check_choice(noise, "noise", NOISE_KINDS)
-    nu_dof = math.inf if noise == "gaussian" else V.check_real(dof, "dof", low=0.0, low_open=True)
+    nu_dof = (
+        math.inf if noise == "gaussian"
+        else V.check_real(dof, "dof", low=0.0, high=math.inf, low_open=True, high_open=True)
+    )
     m0 = V.check_vector_array(x0_mean, "x0_mean", 4)
     P0 = V.check_covariance_array(x0_cov, "x0_cov", 4)
     if constants is None:
@@ -358,7 +360,7 @@ def make_manipulator(
     rho = _euler_radius(force, dt, th, constants)
     rng = np.random.default_rng(random_state)
     x = _states(rng, n, m0, P0, Rw_m, force, dt, th, constants)
-    v = _measurement_noise(rng, n, Rv_m, nu_dof)
+    v = _measurement_noise(rng, n, Rv_m, noise, dof_init=nu_dof)
     y_clean = x[:, 2:] + v
     y, mask = _add_outliers(rng, y_clean, fraction, rng_out)
     params = {

@@ -14,31 +14,21 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterable, Iterator
 
-import numpy as np
 from sklearn.exceptions import ConvergenceWarning
 
 from ..estimation.start import JITTER_DRAWS, SimulationCheck, Start
 from ..inference.filtering import NumericalError
 
 __all__ = [
-    "DOF_FLOOR",
-    "DOWNWEIGHTED_SHARE",
     "EXPLAINED_FLOOR",
     "error_message",
     "fit_messages",
-    "noise_absorbing_message",
     "rejection_message",
     "start_messages",
     "warn_fit",
     "warn_start",
     "warn_study",
 ]
-
-#: A fitted dof below this (tails heavier than Cauchy's), or more than DOWNWEIGHTED_SHARE of the
-#: samples with an outlier weight below 0.5, is reported: the noise model may be absorbing model
-#: error (genuinely Cauchy noise down-weights about a third of the samples).
-DOF_FLOOR = 1.0
-DOWNWEIGHTED_SHARE = 0.4
 
 #: Below this robust R² of the smoothed outputs against ``y``, a fit is reported as explaining nothing.
 EXPLAINED_FLOOR = 0.05
@@ -101,9 +91,8 @@ def fit_messages(report) -> Messages:
     message = rejection_message(report.kept.rejections, **_advice_settings(report.settings))
     if message:
         yield message, RuntimeWarning
-    message = noise_absorbing_message(report.dof, report.outlier_weights)
-    if message:
-        yield message, RuntimeWarning
+    if report.absorption:
+        yield report.absorption, RuntimeWarning
     yield from explained_messages(report.explained, report.simulated)
     yield from ending_messages(report.kept, report.settings, report.start)
 
@@ -161,24 +150,6 @@ def rejection_message(rejections: list, optimizer: str, learning_rate: float) ->
         "the M-step update was rejected (the step was undone and the parameters did not move) "
         f"for {'; '.join(parts)}; history_['rejected.f'] / ['rejected.g'] mark the iterations. "
         f"To fix: {advice}."
-    )
-
-
-def noise_absorbing_message(dof, weights) -> str | None:
-    """Words for a fit whose noise model explains too much (``None`` if it does not)."""
-    ws = weights if isinstance(weights, list) else [weights]
-    w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
-    w = w[np.isfinite(w)]
-    share = float(np.mean(w < 0.5)) if w.size else 0.0
-    low = np.min(np.atleast_1d(dof)) < DOF_FLOOR
-    if not low and share <= DOWNWEIGHTED_SHARE:
-        return None
-    return (
-        f"the measurement noise absorbs much of the data: dof {np.round(np.atleast_1d(dof), 2).tolist()}, "
-        f"{100 * share:.0f} % of the samples have an outlier weight below 0.5. Unless the sensor "
-        "noise really is that heavy-tailed, the noise model is absorbing what f and g cannot explain "
-        "(model error, not outliers): check the residuals (torch_nssm.diagnostics), raise the lower "
-        "dof bound (dof_bounds=(2.0, 1000.0)) or hold it (fit_dof=False), or improve the model"
     )
 
 

@@ -38,6 +38,7 @@ import numpy as np
 import torch
 
 from ..core.model import SequenceBatch, StateSpaceModel
+from ..core.scales import LOG_CHOLESKY
 from .estep import EStepOutput
 from .snapshot import restore, snapshot
 from .uncertainty import observed_information
@@ -119,7 +120,7 @@ def information_at(model: StateSpaceModel, data: SequenceBatch, est: EStepOutput
         est,
         fit_Rw=False,
         fit_Rv=False,
-        fit_dof=False,
+        fit_shape=False,
         n_trajectories=TRAJECTORIES,
         generator=generator,
     )
@@ -197,37 +198,23 @@ SQUAREM_MIN_COSINE = 0.5
 SQUAREM_MIN_STEP = 0.5
 
 
-# The matrix logarithm, not the information's log-Cholesky working scale (uncertainty._Block): it
-# does not depend on the order of the states, so a jump is the same whichever state comes first.
-def _sym_log(a: np.ndarray) -> np.ndarray | None:
-    """Matrix logarithm of a symmetric positive-definite matrix (``None`` if it is not one)."""
-    e, v = np.linalg.eigh(a)
-    if not np.all(np.isfinite(e)) or e.min() <= 0:
-        return None
-    return (v * np.log(e)) @ v.T
-
-
-def _sym_exp(a: np.ndarray) -> np.ndarray:
-    """Matrix exponential of a symmetric matrix (symmetrised first)."""
-    e, v = np.linalg.eigh((a + a.T) / 2)
-    return (v * np.exp(e)) @ v.T
-
-
 class NoiseExtrapolation:
     """Squared extrapolation (SQUAREM, Varadhan & Roland 2008) of the noise parameters.
 
     The Newton steps move ``f``'s and ``g``'s parameters; the noise parameters converge at EM's
     own linear rate (on the manipulator the measurement-noise scale starts 25x too large and EM
     shrinks it by 5-15 % per iteration).  From three successive EM iterates of a block
-    (``Rw``, ``Rv``, the degrees of freedom), ``t0 -> t1 -> t2``, this jumps to::
+    (``Rw`` and each parameter of the measurement noise), ``t0 -> t1 -> t2``, this jumps to::
 
         t' = t0 + 2 alpha r + alpha^2 v,   r = t1 - t0,  v = t2 - 2 t1 + t0,  alpha = |r| / |v|
 
     (``alpha = 1`` gives ``t2``; for a linear rate ``rho``, ``alpha = 1 / (1 - rho)``: the whole
-    remaining distance).  Coordinates: the matrix logarithms of ``Rw`` and ``Rv`` and the log
-    degrees of freedom, so every jump is a valid model; the next cycle starts at the jump, whose
-    own M-step is SQUAREM's stabilising step.  It needs no information: an extrapolated iteration
-    costs an EM iteration.
+    remaining distance).  Coordinates: those of each parameter's working scale
+    (:meth:`~torch_nssm.core.scales.WorkingScale.extrapolation`; the noise family declares them in
+    ``WORKING``): the matrix logarithms of ``Rw`` and ``Rv``, the logarithm of positive parameters
+    such as the degrees of freedom (clipped to the family's bounds), so every jump is a valid
+    model; the next cycle starts at the jump, whose own M-step is SQUAREM's stabilising step.  It
+    needs no information: an extrapolated iteration costs an EM iteration.
 
     Against the particle noise: a block is extrapolated only when its two EM steps agree in
     direction (cosine >= ``SQUAREM_MIN_COSINE``) and are not smaller than ``SQUAREM_MIN_STEP``
@@ -236,24 +223,18 @@ class NoiseExtrapolation:
     after which the log-likelihood estimate falls (:func:`newton_tolerance`), which shrinks the cap.
     """
 
-    def __init__(self, dof_bounds: tuple[float, float], n_obs: int):
-        self.dof_bounds = dof_bounds
+    def __init__(self, n_obs: int):
         self.min_step = SQUAREM_MIN_STEP * float(np.sqrt(2.0 / max(n_obs, 1)))
         self.step_max = SQUAREM_STEP_MAX
         self.points: list[dict[str, np.ndarray]] = []
 
     def _coordinates(self, model: StateSpaceModel) -> dict[str, np.ndarray]:
-        """The log-scale coordinates of each noise block that has them (not a singular ``Rw``)."""
+        """The extrapolation coordinates of each noise block that has them (not a singular ``Rw``)."""
         values = {"Rw": model.Rw, **model.noise.parameters()}
+        scales = {"Rw": LOG_CHOLESKY, **model.noise.WORKING}
         out = {}
         for name, value in values.items():
-            a = value.detach().cpu().double().numpy()
-            if a.ndim == 2:
-                a = _sym_log(a)
-            elif name == "dof" and np.all(a > 0):
-                a = np.log(a)
-            else:
-                continue
+            a = scales[name].extrapolation(value.detach().cpu().double().numpy())
             if a is not None:
                 out[name] = a
         return out
@@ -302,13 +283,18 @@ class NoiseExtrapolation:
         self.start(model)
 
     def _apply(self, model: StateSpaceModel, jumps: dict[str, np.ndarray]) -> StateSpaceModel:
-        def value(a: np.ndarray, like: torch.Tensor) -> torch.Tensor:
-            a = _sym_exp(a) if a.ndim == 2 else np.clip(np.exp(a), *self.dof_bounds)
+        noise = model.noise
+
+        def value(name: str, a: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+            if name == "Rw":
+                a = LOG_CHOLESKY.from_extrapolation(a, None)
+            else:
+                a = noise.WORKING[name].from_extrapolation(a, noise.bounds(name))
             return torch.as_tensor(a, dtype=like.dtype, device=like.device).reshape(like.shape)
 
-        Rw = value(jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
-        noise = {n: value(a, getattr(model.noise, n)) for n, a in jumps.items() if n != "Rw"}
-        return dataclasses.replace(model, Rw=Rw, noise=model.noise.replace(**noise))
+        Rw = value("Rw", jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
+        params = {n: value(n, a, getattr(noise, n)) for n, a in jumps.items() if n != "Rw"}
+        return dataclasses.replace(model, Rw=Rw, noise=noise.replace(**params))
 
 
 # --------------------------------------------------------------------------- the EM loop's hooks
@@ -348,19 +334,17 @@ class NewtonAcceleration(Acceleration):
 
     Parameters
     ----------
-    dof_bounds : (float, float)
-        Bracket of the degrees of freedom (the extrapolation's clip).
     n_obs : int
         Observed samples (the extrapolation's least step, the tolerance of a lost step).
     flags : list of bool
         ``history["accelerated"]``: one flag per iterate, appended after each M-step.
     """
 
-    def __init__(self, dof_bounds: tuple[float, float], n_obs: int, flags: list):
+    def __init__(self, n_obs: int, flags: list):
         self.newton = True  # Newton steps go on (each needs the information before the M-step)
         self.previous_step: np.ndarray | None = None  # the last Newton step taken
         self.max_factor = MAX_FACTOR  # the cap of the next Newton step
-        self.extrapolation = NoiseExtrapolation(dof_bounds, n_obs)
+        self.extrapolation = NoiseExtrapolation(n_obs)
         self.tolerance = newton_tolerance(n_obs)
         self.flags = flags
         self.at: InformationAt | None = None
@@ -410,10 +394,10 @@ class NewtonAcceleration(Acceleration):
         return model
 
 
-def acceleration_for(name: str | None, *, dof_bounds: tuple[float, float], n_obs: int, history: dict):
+def acceleration_for(name: str | None, *, n_obs: int, history: dict):
     """The loop's :class:`Acceleration` for ``acceleration=name`` (``None``: plain EM); ``history``
     receives the ``"accelerated"`` flags."""
     if name != "newton":
         return Acceleration()
     history["accelerated"] = []
-    return NewtonAcceleration(dof_bounds, n_obs, history["accelerated"])
+    return NewtonAcceleration(n_obs, history["accelerated"])

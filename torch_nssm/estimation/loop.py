@@ -335,7 +335,6 @@ def run_em(
     exact = shared and options.estep.segment_length is None  # acceleration: single fits, exact E-step
     acceleration = acceleration_for(
         options.acceleration if exact else None,
-        dof_bounds=options.mstep.dof_bounds,
         n_obs=groups.n_obs[0],
         history=groups.histories[0],
     )
@@ -458,13 +457,13 @@ def _attempt(estep: EStepCache, groups: list[int], iteration: int | None) -> str
 
 
 def _show(bar, groups: _Groups, estep: EStepCache) -> None:
-    """The progress bar's log-likelihood per observation (and dof) of a single fit."""
+    """The progress bar: log-likelihood per observation, and the noise family's scalar parameters."""
     if groups.shared and groups.active:
         ll = float(estep.latest.log_likelihood.sum())
         postfix = {"loglik": f"{ll / max(groups.n_obs[0], 1):.4f}/obs"}
-        dof = getattr(groups.models[0].noise, "dof", None)
-        if dof is not None and dof.dim() == 0:
-            postfix["dof"] = f"{float(dof):.3g}"
+        for name, value in groups.models[0].noise.parameters().items():  # its scalar parameters
+            if value.dim() == 0:
+                postfix[name] = f"{float(value):.3g}"
         bar.set_postfix(postfix)
 
 

@@ -73,10 +73,11 @@ class MStepOptions:
         closed form.
     solver : SolverSettings
         Its iterations, step size, minibatches.
-    fit_Rw, fit_Rv, fit_dof, fit_x0 : bool
-        Which noise parameters and the initial-state prior are updated.
-    dof_bounds : (float, float)
-        Bracket of the degrees-of-freedom root-solve.
+    fit_Rw, fit_Rv, fit_x0 : bool
+        Whether ``Rw``, ``Rv`` and the initial-state prior are updated.
+    fit_shape : bool
+        Whether the measurement noise's other parameters are updated: those its specification
+        estimates (e.g. the Student-t's ``dof`` with ``fit_dof``); False holds them all.
     rows_per_step : int or None
         Thin the gradient solvers' regressions to at most this many rows per time step
         (:meth:`Regression.rows`); ``None``: every particle's row.
@@ -84,8 +85,7 @@ class MStepOptions:
 
     optimizer: str = "lbfgs"
     solver: SolverSettings = field(default_factory=SolverSettings)
-    fit_dof: bool = True
-    dof_bounds: tuple[float, float] = (0.1, 1000.0)
+    fit_shape: bool = True
     fit_x0: bool = True
     fit_Rw: bool = True
     fit_Rv: bool = True
@@ -356,15 +356,17 @@ def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice]
     return lambda sl: weights_of(sl) * observed[sl]
 
 
-def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:
+def observation_regression(
+    data: SequenceBatch, est: EStepOutput, *, per_component: bool = False
+) -> Regression:
     """The ``theta_g`` regression: ``(x_k^l, u_k) -> y_k``, weight ``W_{k|N}^l`` times the latent
-    scales (per component where the noise has one scale per component), metric ``Rv^-1`` on the
-    observed components."""
+    scales, metric ``Rv^-1`` on the observed components.  ``per_component``: the noise family's
+    (one latent scale per output component, which then weights the components of each row)."""
     W = smoothing_weights(data, est)
     scale = est.filter.scale
     y = scale.fill_missing(data.y).unsqueeze(2)  # (T, B, 1, p)
     X, e_lam = est.filter.particles, est.e_lam
-    if e_lam.dim() == 4:  # one latent scale per component
+    if per_component:
         return Regression(X, data.u, y, W, scale.whitener(), lambda sl: e_lam[sl])
     return Regression(X, data.u, y, lambda sl: W(sl) * e_lam[sl], scale.whitener())
 
@@ -408,7 +410,7 @@ def noise_statistics(
     """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
     groups = _Groups(shared, data.n_sequences)
     scale = est.filter.scale
-    regression = observation_regression(data, est)
+    regression = observation_regression(data, est, per_component=noise.per_component)
     W = smoothing_weights(data, est)
     predict = _evaluator(g, groups)
     stats: dict[str, Tensor] = {}
@@ -481,12 +483,12 @@ def m_step(
     if options.fit_Rw:
         Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
 
-    reports_g, _ = _update_modules(gs, observation_regression(data, est), groups, options)
+    regression = observation_regression(data, est, per_component=noise_old.per_component)
+    reports_g, _ = _update_modules(gs, regression, groups, options)
     noise = noise_old.updated(
         noise_statistics(noise_old, gs, data, est, shared=shared),
         fit_Rv=options.fit_Rv,
-        fit_dof=options.fit_dof,
-        dof_bounds=options.dof_bounds,
+        fit_shape=options.fit_shape,
     )
     if options.fit_x0:
         x0_mean, x0_cov = initial_state_update(est, Rw, shared=shared)

@@ -211,8 +211,10 @@ class FitReport:
         The comparison of the fit's simulation with the first stage's.
     explained, simulated : float
         Robust R² of the kept fit's smoothed outputs and of its noise-free simulation.
-    dof, outlier_weights
-        The fitted degrees of freedom and outlier weights (whether the noise absorbs the data).
+    absorption : str or None
+        The noise family's words when it absorbs much of the data (model error taken for noise).
+    outlier_weights
+        The fitted outlier weights.
     """
 
     outcomes: list[RunOutcome]
@@ -223,7 +225,7 @@ class FitReport:
     simulation: SimulationCheck | None = None
     explained: float = math.nan
     simulated: float = math.nan
-    dof: Any = None
+    absorption: str | None = None
     outlier_weights: Any = None
 
     @property
@@ -242,12 +244,13 @@ class FitReport:
         """Indices of the runs without an error that have an E-step (candidates to keep)."""
         return [i for i, o in enumerate(self.outcomes) if o.error is None and o.fitted]
 
-    def describe_kept(self, result: EMResult, data: SequenceBatch, outputs: torch.Tensor, dof, weights):
+    def describe_kept(self, result: EMResult, data: SequenceBatch, outputs: torch.Tensor, weights):
         """Record the kept run (``outputs``: its noise-free outputs), how much of ``y`` it explains,
-        and its fitted ``dof`` and outlier ``weights``."""
+        its outlier ``weights`` and whether its noise absorbs the data."""
         self.kept = RunOutcome.of(result)
         self.explained, self.simulated = explained_fractions(result, data, outputs)
-        self.dof, self.outlier_weights = dof, weights
+        self.outlier_weights = weights
+        self.absorption = result.model.noise.absorption_message(weights)
 
     def init_log_likelihoods(self) -> np.ndarray:
         """Final log-likelihood estimate of each run (``-inf`` for a run stopped by an error)."""
