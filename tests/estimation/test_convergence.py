@@ -33,13 +33,14 @@ def _history(n, dof_step=0.0, ll_step=0.0, seed=0):
 
 
 def test_has_converged_needs_every_parameter_still():
-    assert has_converged(_history(8), n_obs=1000, tol=1e-3)
-    assert not has_converged(_history(8, ll_step=5.0), n_obs=1000, tol=1e-3)  # still climbing
-    assert not has_converged(_history(8), n_obs=1000, tol=0.0)  # tol=0: run all iterations
+    rv = {"Rv": np.array([0.05])}  # relative standard error of Rv: compared on the log scale
+    assert has_converged(_history(8), n_obs=1000, tol=1e-3, scales=rv)
+    assert not has_converged(_history(8, ll_step=5.0), n_obs=1000, tol=1e-3, scales=rv)  # climbing
+    assert not has_converged(_history(8), n_obs=1000, tol=0.0, scales=rv)  # tol=0: run all iterations
     creeping = _history(8, dof_step=0.01)  # the dof grows 1 % an iteration, steadily
-    assert not has_converged(creeping, n_obs=1000, tol=1e-3)
+    assert not has_converged(creeping, n_obs=1000, tol=1e-3, scales={**rv, "dof": np.array([1e-4])})
     # ... 5 % over the window, well within its standard error at dof 10 and 1,000 samples (20 %):
-    scales = {"dof": np.array([float(dof_relative_standard_error(torch.tensor(10.0), 1, 1000))])}
+    scales = {**rv, "dof": np.array([float(dof_relative_standard_error(torch.tensor(10.0), 1, 1000))])}
     assert 0.15 < scales["dof"][0] < 0.25
     assert has_converged(creeping, n_obs=1000, tol=1e-3, scales=scales)
 

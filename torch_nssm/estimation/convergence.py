@@ -25,9 +25,6 @@ STATIONARY_WINDOW = 5
 #: A net change within this many standard deviations of the jitter (scaled to the window) is noise.
 JITTER_Z = 2.0
 
-#: History keys whose values are positive and compared on the log scale.
-_LOG_SCALE_PREFIXES = ("Rw", "Rv", "dof")
-
 
 def stationary(values, rtol: float, atol: float = 0.0) -> bool:
     """Whether the sequence ``values`` (iterations along the first axis) has stopped drifting over its
@@ -46,10 +43,6 @@ def stationary(values, rtol: float, atol: float = 0.0) -> bool:
     return bool(np.all((drift <= JITTER_Z * jitter) | (drift <= rtol * np.abs(v[-1]) + atol)))
 
 
-def _log_scale(key: str) -> bool:
-    return key.startswith(_LOG_SCALE_PREFIXES)
-
-
 #: A positive parameter with a standard error (the noise family's :meth:`convergence_scales`) has
 #: converged once its net change over the window is below this fraction of it.
 SE_FRACTION = 0.5
@@ -61,7 +54,8 @@ def has_converged(
     """Whether EM's ``history`` (every parameter and ``"log_likelihood"`` at every iteration) shows
     no drift any more: the log-likelihood estimate within its jitter or within ``tol`` per
     observation and iteration over the window, and every recorded parameter within its jitter or
-    ``rtol`` (relative), or, for those in ``scales`` (relative standard errors), within
+    ``rtol`` (relative).  The parameters in ``scales`` (positive ones, e.g. variances: their
+    relative standard errors) are compared on the log scale, and also pass within
     :data:`SE_FRACTION` of their standard error."""
     scales = scales or {}
     if tol <= 0:
@@ -77,11 +71,9 @@ def has_converged(
         series = np.asarray([np.asarray(v, dtype=float) for v in values[-(STATIONARY_WINDOW + 1) :]])
         if series.size == 0:
             continue
-        if _log_scale(key):  # relative changes: an absolute tolerance on the log scale
+        if key in scales:  # relative changes: an absolute tolerance on the log scale
             series = np.log(np.abs(series) + 1e-300)
-            atol = rtol
-            if key in scales:
-                atol = np.maximum(rtol, SE_FRACTION * np.asarray(scales[key], dtype=float).reshape(-1))
+            atol = np.maximum(rtol, SE_FRACTION * np.asarray(scales[key], dtype=float).reshape(-1))
             if not stationary(series, 0.0, atol=atol):
                 return False
         elif not stationary(series, rtol):

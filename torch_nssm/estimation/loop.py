@@ -268,6 +268,7 @@ class _Groups:
             self.lls[g].append(ll)
             scales = self.models[g].noise.convergence_scales(self.n_obs[g])
             scales = {k: v.detach().cpu().numpy() for k, v in scales.items()}
+            scales["Rw"] = np.full(self.models[g].Rw.shape, math.sqrt(2.0 / max(self.n_obs[g], 1)))
             if has_converged(self.histories[g], self.n_obs[g], options.tol, scales=scales):
                 self.done[g] = True
             elif it < options.n_iter:
