@@ -24,7 +24,7 @@ from .estimation.solvers import SOLVERS, SolverSettings
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.smoothers import SMOOTHERS, smoother_options
 
-__all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options", "particles_of"]
+__all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options"]
 
 Check = Callable[[object, str, object], None]
 
@@ -120,7 +120,7 @@ PARAMETER_CHECKS: dict[str, Check] = {
     "fit_Rw": bool_or_auto,
     "focus": choice(["prediction", "simulation"]),
     "resampling": choice(sorted(RESAMPLING_SCHEMES)),
-    "n_particles": optional(integer(2)),
+    "n_particles": integer(2),
     "n_particles_final": optional(integer(2)),
     "average_last": integer(0),
     "n_iter": integer(0),
@@ -158,21 +158,6 @@ def check_parameters(estimator) -> torch.device:
     return V.check_device(estimator.device)
 
 
-#: ``n_particles=None``: particles of a fit that estimates the process noise, and of a simulation
-#: model (its process noise held small: the particles differ by their first states and hardly
-#: spread, so a few describe the states' distribution as well as many).
-DEFAULT_PARTICLES = 200
-SIMULATION_PARTICLES = 32
-
-
-def particles_of(estimator) -> int:
-    """The particle count: ``n_particles``, or when it is ``None`` the fit's choice (``n_particles_``,
-    set when the start is planned), else :data:`DEFAULT_PARTICLES`."""
-    if estimator.n_particles is not None:
-        return int(estimator.n_particles)
-    return int(estimator.__dict__.get("n_particles_", DEFAULT_PARTICLES))
-
-
 def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = None) -> EMOptions:
     """The EM loop's settings from ``estimator``'s parameters (``fit_Rw`` overrides theirs)."""
     smoother_opts = dict(estimator.smoother_options or {})
@@ -185,7 +170,7 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
         average_last=estimator.average_last,
         acceleration=estimator.acceleration,
         estep=EStepOptions(
-            n_particles=particles_of(estimator),
+            n_particles=estimator.n_particles,
             smoother=estimator.smoother,
             smoother_options=smoother_opts,
             resampling=estimator.resampling,

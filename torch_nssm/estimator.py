@@ -11,8 +11,6 @@ same loop over many data sets at once.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin
@@ -21,7 +19,7 @@ from torch import nn
 from . import _validation as V
 from ._model_state import ModelState
 from ._module_params import ModuleParams
-from ._parameters import DEFAULT_PARTICLES, SIMULATION_PARTICLES, check_parameters, em_options
+from ._parameters import check_parameters, em_options
 from ._threads import with_thread_limit
 from .core.model import SequenceBatch
 from .core.noise import NoiseSpec
@@ -71,9 +69,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     x0_cov : array-like, optional
         Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal); identity if omitted.
     Rw_init : array-like, optional
-        Initial process-noise covariance.  If omitted: held small for a simulation model
-        (``focus``), else a tenth of the variance of each state's change per step along the start's
-        noise-free simulation (diagonal; ``0.1 * I`` where that is not finite).
+        Initial process-noise covariance.  If omitted: a tenth of the variance of each state's
+        change per step along the start's noise-free simulation (diagonal; ``0.1 * I`` where that
+        is not finite or does not move).
     Rv_init : array-like, optional
         Initial measurement-noise scale matrix.  If omitted: for a simulation model the robust
         spread of the first stage's output errors, else ``0.02 * diag(s^2)``, ``s`` a robust
@@ -97,21 +95,14 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         Bracket of the DOF root-solve (a shortcut, see ``noise``).
     fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
-        the physics).  ``"auto"``: held small for a simulation model (``focus``); otherwise
-        estimated, but when EM made the model's noise-free simulation of the training record more
-        than 10 % worse than the first stage's (the process noise carrying what ``f`` should
-        simulate), EM runs again from the first stage with the process noise held small and that
-        fit is kept if it simulates better (a warning says so; ``fit_Rw_`` says what the kept fit
-        did).
+        the physics).  ``"auto"`` is True (``focus`` decides what EM may do with ``f`` and ``g``).
     fit_Rv : bool, default=True
         Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
         Re-estimate the initial-state prior from the smoothed first state (its covariance is
         floored by ``Rw`` so that it cannot collapse on a single record).
-    n_particles : int, optional
-        Number of particles ``L``.  If omitted: 200, or 32 for a simulation model (``focus``: its
-        process noise held small, the particles differ by their first states and hardly spread);
-        ``n_particles_`` says which.
+    n_particles : int, default=200
+        Number of particles ``L``.
     n_particles_final : int, optional
         The particle count grows geometrically from ``n_particles`` to this at iteration
         ``n_iter``; the final E-step and later ``smooth``/``predict`` calls use it.
@@ -153,11 +144,13 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         from the given values.  docs/design.md, "How a fit starts".
     focus : {"simulation", "prediction"}, default="simulation"
         What the model is for (MATLAB's ``Focus``).  ``"simulation"``: when the first stage's
-        simulation is kept, EM holds the process noise small (unless ``fit_Rw`` says otherwise)
-        and estimates the measurement noise, the outlier weights, ``g``'s parameters and the first
-        state around that simulation, which it cannot then spoil; ``fit_Rw_`` is False.
-        ``"prediction"``: EM estimates the process noise too (the states may follow ``y``: a
-        model for filtering and k-step-ahead prediction).
+        noise-free simulation explains at least 90 % of ``y`` (robust R²: a simulation model), EM
+        keeps its ``f``, ``g`` and first state (the robust simulation-error fit simulates best)
+        and estimates the noise around them: the process and measurement noise and the outlier
+        weights (``simulation_model_`` is True).  ``"prediction"``, or a first stage that explains
+        less (the process noise carries much of ``y``): EM estimates ``f`` and ``g`` too, the
+        maximum-likelihood model, whose states may follow ``y`` through the process noise (for
+        filtering and k-step-ahead prediction).
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
@@ -248,7 +241,10 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         What the first stage did (simulation errors before and after, whether it was kept, the
         free-run error scales after the first stage and after EM); ``None`` if it did not run.
     fit_Rw_ : bool
-        Whether the kept fit estimated the process noise (False when ``fit_Rw="auto"`` held it).
+        Whether the fit estimated the process noise.
+    simulation_model_ : bool
+        Whether EM kept the first stage's ``f`` and ``g`` and estimated the noise around them (a
+        simulation model with ``focus="simulation"``).
     init_log_likelihoods_ : ndarray of shape (n_init,)
         Final log-likelihood estimate of each run (``-inf`` for a run stopped by a
         :class:`~torch_nssm.NumericalError`).
@@ -286,7 +282,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         focus: str = "simulation",
         fit_Rv: bool = True,
         fit_x0: bool = True,
-        n_particles: int | None = None,
+        n_particles: int = 200,
         n_particles_final: int | None = None,
         average_last: int = 0,
         acceleration: str | None = None,
@@ -422,8 +418,6 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         start = plan_start(base, data, self._start_settings(warm))  # first stage, divergence limit, seeds
         if not warm:
             self.first_stage_ = start.first_stage
-            default = SIMULATION_PARTICLES if start.fit_Rw is False else DEFAULT_PARTICLES
-            self.n_particles_ = default if self.n_particles is None else int(self.n_particles)
         fit_warnings.warn_start(start, stacklevel=3)
         runner = self._runner(device, warm, start)
         if start.interrupted:  # Ctrl-C in the first stage: its best stage, evaluated, and no EM
@@ -432,9 +426,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         report = FitReport([RunOutcome.of(*run) for run in runs], self._report_settings(), start=start)
         store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
         best = self._best_run(runs, report, store)  # or KeyboardInterrupt / NumericalError
-        asked = self.fit_Rw if start.fit_Rw is None else start.fit_Rw
-        self.fit_Rw_ = self._fitted_Rw() if warm else bool(asked)
-        best, outputs = self._kept_simulation(start, best, data, runner, report)
+        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        self.simulation_model_ = runner.hold_modules
+        best, outputs = self._kept_simulation(start, best, data, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
         report.describe_kept(best, data, outputs, self.outlier_weights_)
         fit_warnings.warn_fit(report, stacklevel=3)
@@ -449,10 +443,11 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         )
 
     def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
-        """One EM run of this fit; a warm start continues what the fit did with the process noise
-        (``fit_Rw="auto"`` may have held it), a simulation model's start holds it."""
-        fit_Rw = self._fitted_Rw() if warm else start.fit_Rw
-        return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw)
+        """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; a warm start
+        continues what the fit did (the process noise held or not, the modules held or not)."""
+        fit_Rw = self._fitted_Rw() if warm else None
+        hold = bool(self.__dict__.get("simulation_model_", False)) if warm else start.hold_modules
+        return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw, hold)
 
     def _report_settings(self) -> dict:
         return {k: getattr(self, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}
@@ -474,14 +469,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             self._store_run(last, init_lls=report.init_log_likelihoods(), **store)
         raise NumericalError(fit_warnings.error_message(report.outcomes[0]))
 
-    def _kept_simulation(self, start, best, data: SequenceBatch, runner: EMRunner, report: FitReport):
-        """The kept run and its noise-free outputs ``(T, B, p)``: ``best``, or after a first stage
-        the run :func:`~torch_nssm.estimation.start.check_simulation` keeps (``report.simulation``)."""
+    def _kept_simulation(self, start, best, data: SequenceBatch, report: FitReport):
+        """The kept run and its noise-free outputs ``(T, B, p)``; after a kept first stage, the
+        comparison of the two simulations (``report.simulation``)."""
         outputs = prediction.free_run(best.model, data.u)[1]
-        if start.staged is None:
-            return best, outputs
-        evaluate = functools.partial(runner.evaluate, start, data=data)
-        report.simulation, best, outputs = check_simulation(start, best, outputs, data, evaluate)
+        if start.staged is not None:
+            report.simulation = check_simulation(start, best, outputs, data)
         return best, outputs
 
     # ------------------------------------------------------------------ standard errors

@@ -32,7 +32,6 @@ from sklearn.base import clone
 from torch import Tensor, nn
 
 from .. import _validation as V
-from .._parameters import particles_of
 from .._stats import robust_scale
 from ..core.noise import noise_spec, restart_parameters
 from ..estimator import RobustNSSMEstimator
@@ -396,7 +395,7 @@ def _reference_estimator(estimator, ref_f, ref_g, noise, n_iter: int, n_particle
         g=ref_g,
         noise=estimator.noise if noise is None else noise,
         n_iter=n_iter,
-        n_particles=particles_of(estimator) if n_particles is None else n_particles,
+        n_particles=estimator.n_particles if n_particles is None else n_particles,
         n_particles_final=None,
         average_last=0,
         n_init=1,

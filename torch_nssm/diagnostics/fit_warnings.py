@@ -103,22 +103,14 @@ def warn_fit(report, stacklevel: int = 1) -> None:
 
 
 def simulation_messages(check: SimulationCheck) -> Messages:
-    """A simulation model whose EM simulated worse (its first stage's ``f`` and ``g`` kept), or a fit
-    with an estimated process noise that simulates much worse than its first stage."""
-    if check.outcome == "reverted":
+    """EM moved a simulation model's ``f`` and ``g`` (``focus="prediction"``) so that it simulates
+    much worse than its first stage."""
+    if check.outcome == "worse":
         yield (
-            f"EM (with the process noise held: a simulation model) moved f and g so that the model "
-            f"simulates the training record worse than its first stage did (robust scale of the free-run "
-            f"errors {check.after:.4g} against {check.before:.4g}): the fit keeps the first stage's f and g "
-            "with EM's noise parameters, first state and outlier weights",
-            UserWarning,
-        )
-    elif check.outcome == "worse":
-        yield (
-            f"with the process noise estimated, the fitted model simulates the training record worse than "
-            f"its first stage did (robust scale of the free-run errors {check.after:.4g} against "
-            f"{check.before:.4g}): the states follow y through the process noise. That suits a model for "
-            "filtering and prediction; for simulation pass focus='simulation' and fit_Rw='auto'",
+            f"EM moved f and g so that the model simulates the training record worse than its first stage "
+            f"did (robust scale of the free-run errors {check.after:.4g} against {check.before:.4g}): the "
+            "states follow y through the process noise. That suits a model for filtering and prediction "
+            "(focus='prediction'); focus='simulation' keeps the first stage's f and g",
             RuntimeWarning,
         )
 

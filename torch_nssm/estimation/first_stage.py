@@ -37,7 +37,6 @@ __all__ = [
     "FirstStageReport",
     "StageReport",
     "first_stage_applies",
-    "held_process_noise",
     "initial_horizon",
     "simulation_error_fit",
 ]
@@ -163,18 +162,6 @@ def first_stage_applies(model: StateSpaceModel) -> bool:
     if not any(p.requires_grad for m in modules for p in m.parameters()):
         return False
     return not any(isinstance(sub, NETWORK_LAYERS) for m in modules for sub in m.modules())
-
-
-def held_process_noise(states: Tensor, data: SequenceBatch, relative: float = 1e-6) -> Tensor:
-    """A small process-noise covariance for a simulation model: ``relative`` times the variance of
-    each state along a noise-free simulation ``states`` ``(T, B, nx)`` of ``data`` (diagonal),
-    floored at ``relative`` times the largest of them (and at ``1e-300``) so that no state is
-    noise-free."""
-    x = torch.cat(data.unpad(states.detach()))  # (n, nx)
-    var = x.var(0) if x.shape[0] > 1 else torch.ones_like(x[0])
-    var = torch.where(torch.isfinite(var), var, torch.ones_like(var))
-    floor = torch.clamp(var.max() * relative, min=1e-300)
-    return torch.diag(torch.clamp(relative * var, min=floor))
 
 
 # ---------------------------------------------------------------------------------------- windows

@@ -81,6 +81,9 @@ class MStepOptions:
     rows_per_step : int or None
         Thin the gradient solvers' regressions to at most this many rows per time step
         (:meth:`Regression.rows`); ``None``: every particle's row.
+    fit_modules : bool
+        Whether ``f``'s and ``g``'s parameters are updated (False: only the noise parameters and
+        the initial-state prior; a simulation model's, whose modules the first stage fitted).
     """
 
     optimizer: str = "lbfgs"
@@ -90,6 +93,7 @@ class MStepOptions:
     fit_Rw: bool = True
     fit_Rv: bool = True
     rows_per_step: int | None = None
+    fit_modules: bool = True
 
 
 @dataclass
@@ -478,13 +482,17 @@ def m_step(
 
     trans = transition_regression(Rw_old, data, est)
     # Rw's scatter from the closed form's pass where it gives it reliably (one pass fewer)
-    reports_f, scatter = _update_modules(fs, trans, groups, options, scatter=options.fit_Rw)
+    held = [SolverReport(math.nan, math.nan) for _ in models]
+    if options.fit_modules:
+        reports_f, scatter = _update_modules(fs, trans, groups, options, scatter=options.fit_Rw)
+    else:
+        reports_f, scatter = held, None
     Rw = Rw_old
     if options.fit_Rw:
         Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
 
     regression = observation_regression(data, est, per_component=noise_old.per_component)
-    reports_g, _ = _update_modules(gs, regression, groups, options)
+    reports_g = _update_modules(gs, regression, groups, options)[0] if options.fit_modules else held
     noise = noise_old.updated(
         noise_statistics(noise_old, gs, data, est, shared=shared),
         fit_Rv=options.fit_Rv,

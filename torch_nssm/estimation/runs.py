@@ -71,6 +71,9 @@ class EMRunner:
     device : torch.device
     fit_Rw : bool or None
         Overrides the estimator's ``fit_Rw`` in every run (a warm start continues the fit's).
+    hold_modules : bool
+        EM keeps ``f``'s and ``g``'s parameters and the first state's prior (a simulation model's
+        runs: those of the first stage).
     """
 
     make_options: Callable[..., EMOptions]
@@ -78,6 +81,7 @@ class EMRunner:
     n_init: int
     device: torch.device
     fit_Rw: bool | None = None
+    hold_modules: bool = False
 
     def __call__(
         self, start: Start, data: SequenceBatch, r: int, *, progress: bool = True, fit_Rw: bool | None = None
@@ -88,6 +92,8 @@ class EMRunner:
             model, generator, stable = start.run_start(r, data, self.device)
             desc = "robust EM" if self.n_init == 1 else f"robust EM (run {r + 1}/{self.n_init})"
             options = self.make_options(desc, fit_Rw=self.fit_Rw if fit_Rw is None else fit_Rw)
+            if self.hold_modules:  # a simulation model: its f, g and first state are the first stage's
+                options.mstep.fit_modules = options.mstep.fit_x0 = False
             if not progress:
                 options.progress = None
             return run_em([model], data, options, generator)[0], stable
@@ -102,13 +108,6 @@ class EMRunner:
 
         return dataclasses.replace(self, make_options=make_options)
 
-    def evaluate(self, start: Start, model, data: SequenceBatch) -> EMResult:
-        """No EM iteration: the final E-step at ``model`` (with ``start``'s particle seed)."""
-        with limited_threads(self.n_threads):
-            _, generator, _ = start.run_start(0, data, self.device)
-            options = self.make_options(None, fit_Rw=False)
-            options.n_iter, options.progress = 0, None
-            return run_em([model], data, options, generator)[0]
 
 
 def fit_runs(runner: EMRunner, start: Start, data: SequenceBatch, n_jobs: int | None) -> list[tuple]:

@@ -19,7 +19,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -30,7 +30,7 @@ from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.parametric import LinearInParameters
 from ..inference import prediction
 from ..metrics import robust_r2_score
-from .first_stage import FirstStageReport, first_stage_applies, held_process_noise, simulation_error_fit
+from .first_stage import FirstStageReport, first_stage_applies, simulation_error_fit
 
 __all__ = [
     "Start",
@@ -127,9 +127,8 @@ class Start:
         A copy of the kept first stage's model (the start of the ``fit_Rw="auto"`` re-run).
     staged_run : (Tensor, Tensor) or None
         Noise-free ``(states, outputs)`` of the kept first stage's model.
-    fit_Rw : bool or None
-        Overrides the estimator's ``fit_Rw`` in the EM runs: False for a simulation model whose
-        process noise the start holds small (:func:`plan_start`); ``None``: the estimator's.
+    hold_modules : bool
+        EM keeps ``f``'s and ``g``'s parameters (a simulation model, :func:`plan_start`).
     interrupted : bool
         Ctrl-C came during the first stage: the start is its best stage so far, and no EM runs.
     """
@@ -143,7 +142,7 @@ class Start:
     divergent_step: int | None = None
     staged: StateSpaceModel | None = None
     staged_run: tuple | None = field(default=None, repr=False)
-    fit_Rw: bool | None = None
+    hold_modules: bool = False
     interrupted: bool = False
 
     def run_start(self, r: int, data: SequenceBatch, device: torch.device) -> tuple:
@@ -163,17 +162,17 @@ def plan_start(
     model: StateSpaceModel, data: SequenceBatch, settings: StartSettings, *, restarts: bool = True
 ) -> Start:
     """The start of a fit's EM runs: the first stage (when it runs, and kept or not), the noise
-    parameters' starting values and whether EM holds the process noise, the divergence limit of the
+    parameters' starting values and whether EM moves ``f`` and ``g``, the divergence limit of the
     restarts and their seeds (``restarts=False``: neither, for a study's data set, whose one run
     starts at :attr:`Start.model`).
 
     A kept first stage whose free run explains at least :data:`SIMULATION_MODEL_R2` of ``y`` is a
-    simulation model: with ``focus="simulation"`` and ``fit_Rw="auto"`` EM holds its process noise
-    small (:func:`held_process_noise`) and estimates the measurement noise (from the first stage's
-    output errors when ``Rv_init`` is not given), the outlier weights, ``g`` and the first state, so
-    that the tracking a free process noise allows cannot spoil the simulation.  Otherwise the
-    process noise carries a share of ``y`` that no simulation explains, and EM estimates it from
-    :func:`scaled_process_noise` (when ``Rw_init`` is not given).
+    simulation model: with ``focus="simulation"`` EM keeps its ``f`` and ``g`` (the robust
+    simulation-error fit is what simulates best: a free process noise would let EM trade the
+    simulation for tracking) and the first state's mean, and estimates the noise around them: the
+    process noise, the measurement noise (from the first stage's output errors when ``Rv_init`` is
+    not given) and the outlier weights.  Otherwise EM estimates every parameter.  A process noise
+    not given starts at :func:`scaled_process_noise`.
     """
     start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
     if runs_first_stage(model, settings):
@@ -182,13 +181,13 @@ def plan_start(
         start.first_stage_unimproved = not start.first_stage.accepted and settings.first_stage != "auto"
         if kept_run is not None:
             start.staged, start.staged_run = copy_model(start.model), kept_run
+    if not settings.Rw_given and not settings.warm:
+        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data))
     simulation_model = start.staged is not None and start.first_stage.explained >= SIMULATION_MODEL_R2
-    if simulation_model and settings.focus == "simulation" and settings.fit_Rw == "auto":
+    if simulation_model and settings.focus == "simulation":
         start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
         start.staged = copy_model(start.model)
-        start.fit_Rw = False
-    elif not settings.Rw_given and not settings.warm:
-        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data))
+        start.hold_modules = True
     if restarts:
         start.limit, start.divergent_step = divergence_limit(start.model, data, check=not settings.warm)
         start.seeds = restart_seeds(settings.random_state, settings.n_runs)
@@ -223,10 +222,10 @@ def scaled_process_noise(model: StateSpaceModel, data: SequenceBatch) -> torch.T
 def simulation_start(
     model: StateSpaceModel, data: SequenceBatch, run: tuple, Rv_given: bool
 ) -> StateSpaceModel:
-    """EM's start for a simulation model: the process noise held small along the first stage's
-    simulation ``run`` (states, outputs), and, unless given, the measurement noise's scale from the
-    robust spread (1.4826 MAD about 0) of that simulation's output errors."""
-    start = replace(model, Rw=held_process_noise(run[0], data))
+    """EM's start for a simulation model: unless given, the measurement noise's scale from the
+    robust spread (1.4826 MAD about 0) of the output errors of the first stage's simulation ``run``
+    (states, outputs)."""
+    start = model
     if Rv_given:
         return start
     errors = torch.cat(data.unpad(data.y - run[1])).cpu().numpy()
@@ -374,11 +373,10 @@ class SimulationCheck:
     ----------
     before, after : float
         Robust scale of the training free-run errors after the first stage and after EM.
-    outcome : {"kept", "worse", "reverted", "interrupted"}
-        ``"kept"``: EM simulates as well as the first stage (a simulation model) or within
-        ``SIMULATION_TOLERANCE`` of it (a fit that estimated the process noise); ``"worse"``: a fit
-        that estimated the process noise simulates worse than that; ``"reverted"``: a simulation
-        model's EM simulated worse, and its ``f`` and ``g`` are the first stage's;
+    outcome : {"kept", "worse", "interrupted"}
+        ``"kept"``: the fit simulates as its first stage did (a simulation model: EM kept ``f`` and
+        ``g``), or within ``SIMULATION_TOLERANCE`` of it; ``"worse"``: EM moved a simulation model's
+        ``f`` and ``g`` (``focus="prediction"``) so that it simulates worse than that;
         ``"interrupted"``: Ctrl-C stopped EM.
     """
 
@@ -395,19 +393,12 @@ def free_run_scale(outputs: torch.Tensor, data: SequenceBatch) -> float:
 
 
 def check_simulation(
-    start: Start, best, free_run_outputs: torch.Tensor, data: SequenceBatch, evaluate: Callable
-) -> tuple[SimulationCheck, Any, torch.Tensor]:
+    start: Start, best, free_run_outputs: torch.Tensor, data: SequenceBatch
+) -> SimulationCheck:
     """Compare the EM fit ``best`` (an ``EMResult``; ``free_run_outputs``: its noise-free outputs)
-    with the kept first stage's simulation.
-
-    A simulation model (EM held the process noise, :attr:`Start.fit_Rw` False) whose EM made the
-    simulation of the training records worse at all gets the first stage's ``f`` and ``g`` back,
-    with EM's noise parameters and first state (``evaluate(model)``: its E-step; outcome
-    ``"reverted"``).  A fit that estimated the process noise is only compared (outcome ``"worse"``
-    beyond ``SIMULATION_TOLERANCE`` where the first stage was a simulation model: ``focus`` or
-    ``fit_Rw`` asked for the process noise); a run stopped by Ctrl-C too (``"interrupted"``).
-
-    Returns the check, the kept run and its outputs; ``start.first_stage`` records the scales."""
+    with the kept first stage's simulation (``start.first_stage`` records both scales): outcome
+    ``"worse"`` when EM moved ``f`` and ``g`` of a simulation model (``focus="prediction"``) so that
+    it simulates more than ``SIMULATION_TOLERANCE`` worse, ``"interrupted"`` after a Ctrl-C."""
     before = free_run_scale(start.staged_run[1], data)
     after = free_run_scale(free_run_outputs, data)
     start.first_stage.free_run_scale_before_em = before
@@ -415,19 +406,7 @@ def check_simulation(
     check = SimulationCheck(before, after)
     if best.interrupted:
         check.outcome = "interrupted"
-        return check, best, free_run_outputs
-    if start.fit_Rw is not False:  # said only where a simulation model was there to keep
-        simulation_model = start.first_stage.explained >= SIMULATION_MODEL_R2
-        if simulation_model and np.isfinite(after) and after > SIMULATION_TOLERANCE * before:
+    elif start.first_stage.explained >= SIMULATION_MODEL_R2 and not start.hold_modules:
+        if np.isfinite(after) and after > SIMULATION_TOLERANCE * before:
             check.outcome = "worse"
-        return check, best, free_run_outputs
-    if np.isfinite(after) and after <= before:
-        return check, best, free_run_outputs
-    model = replace(best.model, f=copy.deepcopy(start.staged.f), g=copy.deepcopy(start.staged.g))
-    reverted = evaluate(model)
-    if reverted.estep is None:
-        return check, best, free_run_outputs
-    reverted.history, reverted.n_done, reverted.converged = best.history, best.n_done, best.converged
-    check.outcome = "reverted"
-    start.first_stage.free_run_scale_after_em = before
-    return check, reverted, start.staged_run[1]
+    return check
