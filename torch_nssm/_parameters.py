@@ -55,8 +55,8 @@ def optional(check: Check) -> Check:
 
 
 def acceleration(value, name: str, estimator) -> None:
-    V.check_choice(value, name, ["newton"])
-    if estimator.segment_length is not None:
+    V.check_choice(value, name, ["newton", "squarem"])
+    if value == "newton" and estimator.segment_length is not None:
         raise ValueError(
             "acceleration='newton' needs the exact E-step: set segment_length=None (the "
             "observed information is not computed from the windows of a segmented E-step)"

@@ -109,7 +109,11 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     average_last : int, default=0
         If > 1, the fitted parameters are the average of the last ``average_last`` iterates
         (Polyak-Ruppert); the final E-step runs at the averaged parameters.
-    acceleration : {None, "newton"}, default=None
+    acceleration : {"squarem", "newton", None}, default="squarem"
+        ``"squarem"``: the noise parameters (``Rw`` and the measurement noise's) jump along their
+        own EM path by squared extrapolation (SQUAREM) where it moves steadily, at no extra cost
+        (single fits; EM converges in the noise parameters at a slow linear rate).  ``None``: plain
+        EM (the paper's algorithm).
         ``"newton"``: after each M-step, move ``f``'s and ``g``'s free parameters by a Newton step
         on the log-likelihood instead (the observed information by Louis' identity from the same
         E-step, :mod:`torch_nssm.estimation.acceleration`), until a step falls within one standard
@@ -120,9 +124,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3
-        Convergence threshold on the change of the per-observation log-likelihood estimate,
-        averaged over windows of 5 iterations (EM with particles is stochastic).  ``0`` runs all
-        ``n_iter`` iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.
+        EM with particles is stochastic: it has converged when, over the last 5 iterations, neither
+        the log-likelihood estimate (by more than ``tol`` per observation and iteration) nor any
+        parameter (beyond a relative 1e-4, or half a standard error for the noise parameters) drifts
+        more than its iteration-to-iteration jitter explains
+        (:func:`torch_nssm.estimation.convergence.has_converged`).  ``0`` runs all ``n_iter``
+        iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.
     n_init : int, default=1
         Number of EM runs; the one with the highest final log-likelihood estimate is kept.  Run 0
         starts from ``f`` and ``g`` as given, run ``r > 0`` from their free parameters times
@@ -285,7 +292,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         n_particles: int = 200,
         n_particles_final: int | None = None,
         average_last: int = 0,
-        acceleration: str | None = None,
+        acceleration: str | None = "squarem",
         n_iter: int = 100,
         tol: float = 1e-3,
         n_init: int = 1,

@@ -46,8 +46,9 @@ class EMOptions:
         Grow the particle count geometrically from ``estep.n_particles`` to this at ``n_iter``.
     average_last : int
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
-    acceleration : {None, "newton"}
-        ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
+    acceleration : {None, "squarem", "newton"}
+        ``"squarem"``: squared extrapolation of the noise parameters (single fits).  ``"newton"``:
+        also Newton-type steps for ``f``'s and ``g``'s parameters from the observed
         information, until a step is within one standard error, then squared extrapolation of
         the noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
@@ -333,7 +334,8 @@ def run_em(
     """
     groups = _Groups.start(models, data, shared)
     estep = EStepCache(groups.models, data, options, generator, shared, e_step)
-    exact = shared and options.estep.segment_length is None  # acceleration: single fits, exact E-step
+    # acceleration: single fits; Newton steps need the exact E-step (the information)
+    exact = shared and (options.estep.segment_length is None or options.acceleration == "squarem")
     acceleration = acceleration_for(
         options.acceleration if exact else None,
         n_obs=groups.n_obs[0],
@@ -395,8 +397,8 @@ def _iterate(
 #: than COLLAPSE_MIN) is undone and ends EM: EM does not lower the likelihood, and a particle
 #: estimate's Monte Carlo error is a few units; such a fall means a degenerate filter (a noise
 #: parameter shrinking towards zero) or an M-step that should not have been taken.
-COLLAPSE_PER_OBS = 0.1
-COLLAPSE_MIN = 50.0
+COLLAPSE_PER_OBS = 0.5
+COLLAPSE_MIN = 100.0
 
 
 def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCache) -> list[int]:

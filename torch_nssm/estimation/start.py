@@ -181,9 +181,10 @@ def plan_start(
         start.first_stage_unimproved = not start.first_stage.accepted and settings.first_stage != "auto"
         if kept_run is not None:
             start.staged, start.staged_run = copy_model(start.model), kept_run
-    if not settings.Rw_given and not settings.warm:
-        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data))
     simulation_model = start.staged is not None and start.first_stage.explained >= SIMULATION_MODEL_R2
+    if not settings.Rw_given and not settings.warm:
+        share = PROCESS_NOISE_SHARE * (SIMULATION_SHARE if simulation_model else 1.0)
+        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data, share))
     if simulation_model and settings.focus == "simulation":
         start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
         start.staged = copy_model(start.model)
@@ -195,13 +196,17 @@ def plan_start(
 
 
 #: A process noise not given starts at this fraction of the variance of each state's change per step
-#: along the start's noise-free simulation (a slowly varying state gets a small one).
+#: along the start's noise-free simulation (a slowly varying state gets a small one); a simulation
+#: model's, whose simulation explains most of ``y``, at SIMULATION_SHARE of that.
 PROCESS_NOISE_SHARE = 0.1
+SIMULATION_SHARE = 0.1
 
 
 @torch.no_grad()
-def scaled_process_noise(model: StateSpaceModel, data: SequenceBatch) -> torch.Tensor:
-    """``PROCESS_NOISE_SHARE`` times the variance of each state's increment along the model's
+def scaled_process_noise(
+    model: StateSpaceModel, data: SequenceBatch, share: float = PROCESS_NOISE_SHARE
+) -> torch.Tensor:
+    """``share`` times the variance of each state's increment along the model's
     noise-free simulation (diagonal); where that simulation is not finite or does not move a
     state, that state keeps the given ``Rw``'s diagonal entry."""
     states = prediction.free_run(model, data.u)[0]
@@ -213,7 +218,7 @@ def scaled_process_noise(model: StateSpaceModel, data: SequenceBatch) -> torch.T
     d = d[torch.isfinite(d).all(-1)]
     if d.shape[0] < 2:
         return model.Rw
-    var = PROCESS_NOISE_SHARE * d.var(0)
+    var = share * d.var(0)
     ok = torch.isfinite(var) & (var > 0)
     return torch.diag(torch.where(ok, var, given))
 
