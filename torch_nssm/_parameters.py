@@ -28,6 +28,10 @@ __all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options"]
 
 Check = Callable[[object, str, object], None]
 
+#: The gradient solvers' regressions keep at most this many rows per time step (an unbiased
+#: thinning of the smoother's particles, :meth:`~torch_nssm.estimation.mstep.Regression.rows`).
+ROWS_PER_STEP = 32
+
 
 def choice(options) -> Check:
     return lambda value, name, _: V.check_choice(value, name, options)
@@ -51,8 +55,8 @@ def optional(check: Check) -> Check:
 
 
 def acceleration(value, name: str, estimator) -> None:
-    V.check_choice(value, name, ["newton"])
-    if estimator.segment_length is not None:
+    V.check_choice(value, name, ["newton", "squarem"])
+    if value == "newton" and estimator.segment_length is not None:
         raise ValueError(
             "acceleration='newton' needs the exact E-step: set segment_length=None (the "
             "observed information is not computed from the windows of a segmented E-step)"
@@ -109,11 +113,12 @@ def module(value, name: str, _) -> None:
 #: Parameter -> check, in the order they run.
 PARAMETER_CHECKS: dict[str, Check] = {
     "noise": lambda value, name, estimator: noise_of(estimator) and None,
-    "optimizer": choice(sorted(SOLVERS)),
+    "optimizer": choice(sorted([*SOLVERS, "auto"])),
     "smoother": choice(sorted(SMOOTHERS)),
     "first_stage": optional(choice(["auto", "simulation"])),
     "acceleration": optional(acceleration),
     "fit_Rw": bool_or_auto,
+    "focus": choice(["prediction", "simulation"]),
     "resampling": choice(sorted(RESAMPLING_SCHEMES)),
     "n_particles": integer(2),
     "n_particles_final": optional(integer(2)),
@@ -184,6 +189,7 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
             fit_x0=bool(estimator.fit_x0),
             fit_Rw=bool(estimator.fit_Rw) if fit_Rw is None else fit_Rw,
             fit_Rv=bool(estimator.fit_Rv),
+            rows_per_step=ROWS_PER_STEP,
         ),
         progress=progress if estimator.verbose else None,
     )

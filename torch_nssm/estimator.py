@@ -11,8 +11,6 @@ same loop over many data sets at once.
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin
@@ -71,9 +69,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     x0_cov : array-like, optional
         Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal); identity if omitted.
     Rw_init : array-like, optional
-        Initial process-noise covariance; ``0.1 * I`` if omitted.
+        Initial process-noise covariance.  If omitted: a tenth of the variance of each state's
+        change per step along the start's noise-free simulation (diagonal; ``0.1 * I`` where that
+        is not finite or does not move).
     Rv_init : array-like, optional
-        Initial measurement-noise scale matrix; ``0.02 * diag(s^2)`` if omitted, ``s`` a robust
+        Initial measurement-noise scale matrix.  If omitted: for a simulation model the robust
+        spread of the first stage's output errors, else ``0.02 * diag(s^2)``, ``s`` a robust
         spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise (one per output, or one for all, for
@@ -94,11 +95,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         Bracket of the DOF root-solve (a shortcut, see ``noise``).
     fit_Rw : bool or "auto", default="auto"
         Estimate the process-noise covariance; if False it stays at ``Rw_init`` (e.g. known from
-        the physics, or for a simulation model).  ``"auto"``: estimate it, but when the first
-        stage ran and EM made the model's noise-free simulation of the training record more than
-        10 % worse than the first stage's (the process noise carrying what ``f`` should simulate),
-        run EM again from the first stage with the process noise held small and keep that fit if
-        it simulates better (a warning says so; ``fit_Rw_`` says what the kept fit did).
+        the physics).  ``"auto"`` is True (``focus`` decides what EM may do with ``f`` and ``g``).
     fit_Rv : bool, default=True
         Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
@@ -112,7 +109,11 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     average_last : int, default=0
         If > 1, the fitted parameters are the average of the last ``average_last`` iterates
         (Polyak-Ruppert); the final E-step runs at the averaged parameters.
-    acceleration : {None, "newton"}, default=None
+    acceleration : {"squarem", "newton", None}, default="squarem"
+        ``"squarem"``: the noise parameters (``Rw`` and the measurement noise's) jump along their
+        own EM path by squared extrapolation (SQUAREM) where it moves steadily, at no extra cost
+        (single fits; EM converges in the noise parameters at a slow linear rate).  ``None``: plain
+        EM (the paper's algorithm).
         ``"newton"``: after each M-step, move ``f``'s and ``g``'s free parameters by a Newton step
         on the log-likelihood instead (the observed information by Louis' identity from the same
         E-step, :mod:`torch_nssm.estimation.acceleration`), until a step falls within one standard
@@ -123,9 +124,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     n_iter : int, default=100
         Maximum number of EM iterations (of each restart).
     tol : float, default=1e-3
-        Convergence threshold on the change of the per-observation log-likelihood estimate,
-        averaged over windows of 5 iterations (EM with particles is stochastic).  ``0`` runs all
-        ``n_iter`` iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.
+        EM with particles is stochastic: it has converged when, over the last 5 iterations, neither
+        the log-likelihood estimate (by more than ``tol`` per observation and iteration) nor any
+        parameter (beyond a relative 1e-4, or half a standard error for the noise parameters) drifts
+        more than its iteration-to-iteration jitter explains
+        (:func:`torch_nssm.estimation.convergence.has_converged`).  ``0`` runs all ``n_iter``
+        iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.
     n_init : int, default=1
         Number of EM runs; the one with the highest final log-likelihood estimate is kept.  Run 0
         starts from ``f`` and ``g`` as given, run ``r > 0`` from their free parameters times
@@ -135,22 +139,38 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     init_jitter : float, default=1.0
         Standard deviation of the log-normal factor of the restarts (docs/design.md).
     first_stage : {"auto", "simulation", None}, default="auto"
-        ``"simulation"``: before EM, fit ``f``, ``g`` and the first state by robust (Cauchy) simulation
-        error over windows of ``FIRST_STAGE_WINDOW`` samples (multiple shooting), and start EM there
-        (:mod:`torch_nssm.estimation.first_stage`); ``first_stage_`` reports the simulation RMSE
-        before and after.  Restarts (``n_init``) jitter around the first stage's result.
+        ``"simulation"``: before EM, fit ``f``, ``g`` and each record's first state by robust
+        (Cauchy) simulation error, with windows that start short (from the outputs' correlation
+        time) and grow until one covers each record, each stage judged by the free run of the whole
+        records (:mod:`torch_nssm.estimation.first_stage`); EM starts at the best stage.
+        ``first_stage_`` reports every stage.  Restarts (``n_init``) jitter around its result.
         ``"auto"``: the same for physical and grey-box models (free parameters, no network layer
-        in ``f`` or ``g``) when ``n_iter > 0``; models with networks start with
-        :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts from the given
-        values.  docs/design.md, "How a fit starts".
+        in ``f`` or ``g``) when ``n_iter > 0``, and EM starts there only if that free run explains
+        at least half of ``y`` (robust R²; below it the process noise dominates); models with
+        networks start with :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts
+        from the given values.  docs/design.md, "How a fit starts".
+    focus : {"simulation", "prediction"}, default="simulation"
+        What the model is for (MATLAB's ``Focus``).  ``"simulation"``: when the first stage's
+        noise-free simulation explains at least 90 % of ``y`` (robust R²: a simulation model), EM
+        keeps its ``f``, ``g`` and first state (the robust simulation-error fit simulates best)
+        and estimates the noise around them: the process and measurement noise and the outlier
+        weights (``simulation_model_`` is True).  ``"prediction"``, or a first stage that explains
+        less (the process noise carries much of ``y``): EM estimates ``f`` and ``g`` too, the
+        maximum-likelihood model, whose states may follow ``y`` through the process noise (for
+        filtering and k-step-ahead prediction).
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
         new data must have the same numbers of inputs and outputs.
-    optimizer : {"lbfgs", "adam"}, default="lbfgs"
-        Optimiser of the M-step for modules without a closed-form solve.
+    optimizer : {"auto", "gauss-newton", "lbfgs", "adam"}, default="auto"
+        Optimiser of the M-step for modules without a closed-form solve: ``"gauss-newton"``
+        (Levenberg-Marquardt on the weighted residuals, a finite-difference Jacobian: for a few
+        parameters, e.g. a physical model not linear in them), LBFGS, or Adam; ``"auto"``:
+        Gauss-Newton for modules with at most 64 free parameters, else LBFGS.  Their regressions
+        keep at most 32 of the smoother's particles per time step (drawn by systematic resampling
+        of the smoothing weights).
     max_iter_mstep : int, default=20
-        LBFGS iterations (or Adam steps) per M-step.
+        Gauss-Newton or LBFGS iterations (or Adam steps) per M-step.
     learning_rate : float, default=1e-2
         Adam's step size.
     batch_size : int, optional
@@ -228,7 +248,10 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         What the first stage did (simulation errors before and after, whether it was kept, the
         free-run error scales after the first stage and after EM); ``None`` if it did not run.
     fit_Rw_ : bool
-        Whether the kept fit estimated the process noise (False when ``fit_Rw="auto"`` held it).
+        Whether the fit estimated the process noise.
+    simulation_model_ : bool
+        Whether EM kept the first stage's ``f`` and ``g`` and estimated the noise around them (a
+        simulation model with ``focus="simulation"``).
     init_log_likelihoods_ : ndarray of shape (n_init,)
         Final log-likelihood estimate of each run (``-inf`` for a run stopped by a
         :class:`~torch_nssm.NumericalError`).
@@ -263,19 +286,20 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         fit_dof: bool = True,
         dof_bounds: tuple[float, float] = (0.1, 1000.0),
         fit_Rw: bool | str = "auto",
+        focus: str = "simulation",
         fit_Rv: bool = True,
         fit_x0: bool = True,
         n_particles: int = 200,
         n_particles_final: int | None = None,
         average_last: int = 0,
-        acceleration: str | None = None,
+        acceleration: str | None = "squarem",
         n_iter: int = 100,
         tol: float = 1e-3,
         n_init: int = 1,
         init_jitter: float = 1.0,
         first_stage: str | None = "auto",
         warm_start: bool = False,
-        optimizer: str = "lbfgs",
+        optimizer: str = "auto",
         max_iter_mstep: int = 20,
         learning_rate: float = 1e-2,
         batch_size: int | None = None,
@@ -304,6 +328,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         self.fit_dof = fit_dof
         self.dof_bounds = dof_bounds
         self.fit_Rw = fit_Rw
+        self.focus = focus
         self.fit_Rv = fit_Rv
         self.fit_x0 = fit_x0
         self.n_particles = n_particles
@@ -401,13 +426,16 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         if not warm:
             self.first_stage_ = start.first_stage
         fit_warnings.warn_start(start, stacklevel=3)
-        runner = self._runner(device, warm)
+        runner = self._runner(device, warm, start)
+        if start.interrupted:  # Ctrl-C in the first stage: its best stage, evaluated, and no EM
+            runner, start.seeds = runner.without_iterations(), start.seeds[:1]
         runs = fit_runs(runner, start, data, self.n_jobs)  # [(EMResult, start was stable)] per restart
         report = FitReport([RunOutcome.of(*run) for run in runs], self._report_settings(), start=start)
         store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
         best = self._best_run(runs, report, store)  # or KeyboardInterrupt / NumericalError
         self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
-        best, outputs = self._kept_simulation(start, best, data, runner, report)
+        self.simulation_model_ = runner.hold_modules
+        best, outputs = self._kept_simulation(start, best, data, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
         report.describe_kept(best, data, outputs, self.outlier_weights_)
         fit_warnings.warn_fit(report, stacklevel=3)
@@ -415,13 +443,18 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
 
     def _start_settings(self, warm: bool) -> StartSettings:
         n_runs = 1 if warm else self.n_init
-        return StartSettings(self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm)
+        return StartSettings(
+            self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm,
+            focus=self.focus, fit_Rw=self.fit_Rw, Rw_given=self.Rw_init is not None,
+            Rv_given=self.Rv_init is not None,
+        )
 
-    def _runner(self, device: torch.device, warm: bool) -> EMRunner:
-        """One EM run of this fit; a warm start continues what the fit did with the process noise
-        (``fit_Rw="auto"`` may have held it)."""
+    def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
+        """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; a warm start
+        continues what the fit did (the process noise held or not, the modules held or not)."""
         fit_Rw = self._fitted_Rw() if warm else None
-        return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw)
+        hold = bool(self.__dict__.get("simulation_model_", False)) if warm else start.hold_modules
+        return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw, hold)
 
     def _report_settings(self) -> dict:
         return {k: getattr(self, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}
@@ -443,16 +476,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             self._store_run(last, init_lls=report.init_log_likelihoods(), **store)
         raise NumericalError(fit_warnings.error_message(report.outcomes[0]))
 
-    def _kept_simulation(self, start, best, data: SequenceBatch, runner: EMRunner, report: FitReport):
-        """The kept run and its noise-free outputs ``(T, B, p)``: ``best``, or after a first stage
-        the run :func:`~torch_nssm.estimation.start.check_simulation` keeps (``report.simulation``)."""
+    def _kept_simulation(self, start, best, data: SequenceBatch, report: FitReport):
+        """The kept run and its noise-free outputs ``(T, B, p)``; after a kept first stage, the
+        comparison of the two simulations (``report.simulation``)."""
         outputs = prediction.free_run(best.model, data.u)[1]
-        if start.staged is None:
-            return best, outputs
-        rerun = functools.partial(runner.rerun, data=data)
-        report.simulation, best, outputs = check_simulation(start, best, outputs, data, self.fit_Rw, rerun)
-        if report.simulation.outcome == "held":
-            self.fit_Rw_ = False
+        if start.staged is not None:
+            report.simulation = check_simulation(start, best, outputs, data)
         return best, outputs
 
     # ------------------------------------------------------------------ standard errors

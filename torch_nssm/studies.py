@@ -96,9 +96,10 @@ def _check_study_settings(estimator) -> None:
             "segment_length applies to fit (one model for all records); fit_independent runs each data "
             "set whole: set segment_length=None"
         )
-    if estimator.acceleration is not None:
+    if estimator.acceleration == "newton":
         raise ValueError(
-            "acceleration applies to fit (one model); fit_independent runs plain EM: set acceleration=None"
+            "acceleration='newton' applies to fit (one model); fit_independent runs plain EM: set "
+            "acceleration=None (or 'squarem', which applies to single fits too and is ignored here)"
         )
 
 

@@ -13,11 +13,44 @@ Every generator draws from ``np.random.default_rng(random_state)`` and returns a
 * :mod:`~torch_nssm.datasets.pendulum` -- a torque-driven pendulum simulated in continuous time:
   :func:`make_continuous_pendulum` (the continuous-time models' example).
 
+The suite of plants (``benchmarks/real_records.py`` fits them with the defaults and baselines),
+each generator returning a :class:`PlantData` with its validation record, each module with the
+true parameters (``*_TRUE``), a physically sized start (``*_START``, every parameter 30-50 % off)
+and the ``f`` / ``g`` a user would write (``*_model(params)``):
+
+* :mod:`~torch_nssm.datasets.pendulum` -- damped pendulum, RK4 in ``f``: :func:`make_pendulum`.
+* :mod:`~torch_nssm.datasets.tanks` -- cascaded tanks with an overflow, slow: :func:`make_tanks`.
+* :mod:`~torch_nssm.datasets.axis` -- positioning axis in closed loop, quantised encoder, 25,000
+  samples; also linear in its parameters: :func:`make_axis`.
+* :mod:`~torch_nssm.datasets.oscillator` -- lightly damped Duffing, fast: :func:`make_oscillator`.
+* :mod:`~torch_nssm.datasets.wiener_hammerstein` -- filter, saturation, filter:
+  :func:`make_wiener_hammerstein`.
+* :mod:`~torch_nssm.datasets.bouc_wen` -- hysteretic Bouc-Wen oscillator: :func:`make_bouc_wen`.
+
 Each module also holds its system's ready-made ``f`` / ``g`` (collected in :mod:`torch_nssm.models`).
 The Silverbox loader lives with its case study in ``examples/silverbox``.
 """
 
 from ._base import SimulatedData
+from ._plants import PlantData
+from .axis import (
+    AXIS_START,
+    AXIS_TRUE,
+    AxisLinearTransition,
+    AxisObservation,
+    AxisTransition,
+    axis_linear_parameters,
+    axis_model,
+    make_axis,
+)
+from .bouc_wen import (
+    BOUC_WEN_START,
+    BOUC_WEN_TRUE,
+    BoucWenObservation,
+    BoucWenTransition,
+    bouc_wen_model,
+    make_bouc_wen,
+)
 from .continuous_pendulum import CT_PENDULUM_PARAMS, CT_PENDULUM_TS, make_continuous_pendulum
 from .manipulator import (
     MANIPULATOR_ALPHA3,
@@ -43,8 +76,33 @@ from .manipulator import (
     manipulator_force,
     manipulator_transition_matrix,
 )
+from .oscillator import (
+    OSCILLATOR_START,
+    OSCILLATOR_TRUE,
+    OscillatorObservation,
+    OscillatorTransition,
+    make_oscillator,
+    oscillator_model,
+)
 from .paper import PAPER_X0_COV, make_gopaluni_example, make_huang_example, make_paper_example
+from .pendulum import (
+    PENDULUM_START,
+    PENDULUM_TRUE,
+    PendulumObservation,
+    PendulumTransition,
+    make_pendulum,
+    pendulum_model,
+)
+from .tanks import TANKS_START, TANKS_TRUE, TanksObservation, TanksTransition, make_tanks, tanks_model
 from .two_sensors import make_two_sensor_example
+from .wiener_hammerstein import (
+    WH_START,
+    WH_TRUE,
+    WienerHammersteinObservation,
+    WienerHammersteinTransition,
+    make_wiener_hammerstein,
+    wiener_hammerstein_model,
+)
 
 __all__ = [
     "make_two_sensor_example",
@@ -78,4 +136,43 @@ __all__ = [
     "MANIPULATOR_OUTLIER_RANGE",
     "MANIPULATOR_X0_MEAN",
     "MANIPULATOR_X0_COV",
+    "PlantData",
+    "make_pendulum",
+    "pendulum_model",
+    "PendulumTransition",
+    "PendulumObservation",
+    "PENDULUM_TRUE",
+    "PENDULUM_START",
+    "make_tanks",
+    "tanks_model",
+    "TanksTransition",
+    "TanksObservation",
+    "TANKS_TRUE",
+    "TANKS_START",
+    "make_axis",
+    "axis_model",
+    "axis_linear_parameters",
+    "AxisTransition",
+    "AxisLinearTransition",
+    "AxisObservation",
+    "AXIS_TRUE",
+    "AXIS_START",
+    "make_oscillator",
+    "oscillator_model",
+    "OscillatorTransition",
+    "OscillatorObservation",
+    "OSCILLATOR_TRUE",
+    "OSCILLATOR_START",
+    "make_wiener_hammerstein",
+    "wiener_hammerstein_model",
+    "WienerHammersteinTransition",
+    "WienerHammersteinObservation",
+    "WH_TRUE",
+    "WH_START",
+    "make_bouc_wen",
+    "bouc_wen_model",
+    "BoucWenTransition",
+    "BoucWenObservation",
+    "BOUC_WEN_TRUE",
+    "BOUC_WEN_START",
 ]

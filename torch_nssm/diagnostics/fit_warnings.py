@@ -14,8 +14,6 @@ from __future__ import annotations
 import warnings
 from collections.abc import Iterable, Iterator
 
-import numpy as np
-import torch
 from sklearn.exceptions import ConvergenceWarning
 
 from ..estimation.start import JITTER_DRAWS, SimulationCheck, Start
@@ -96,7 +94,7 @@ def fit_messages(report) -> Messages:
     if report.absorption:
         yield report.absorption, RuntimeWarning
     yield from explained_messages(report.explained, report.simulated)
-    yield from ending_messages(report.kept, report.settings)
+    yield from ending_messages(report.kept, report.settings, report.start)
 
 
 def warn_fit(report, stacklevel: int = 1) -> None:
@@ -105,33 +103,15 @@ def warn_fit(report, stacklevel: int = 1) -> None:
 
 
 def simulation_messages(check: SimulationCheck) -> Messages:
-    """EM made the model simulate worse than its first stage: what was done about it."""
-    if check.outcome == "kept":
-        return
-    said = (
-        f"EM made the model simulate worse than its first stage did (robust scale of the training "
-        f"free-run errors {check.after:.4g} after EM, {check.before:.4g} after the first stage): the process "
-        "noise is carrying what f should simulate"
-    )
+    """EM moved a simulation model's ``f`` and ``g`` (``focus="prediction"``) so that it simulates
+    much worse than its first stage."""
     if check.outcome == "worse":
         yield (
-            f"{said}. For a simulation model hold it (fit_Rw=False with a small Rw_init, or "
-            "fit_Rw='auto'), or keep the first stage's parameters",
+            f"EM moved f and g so that the model simulates the training record worse than its first stage "
+            f"did (robust scale of the free-run errors {check.after:.4g} against {check.before:.4g}): the "
+            "states follow y through the process noise. That suits a model for filtering and prediction "
+            "(focus='prediction'); focus='simulation' keeps the first stage's f and g",
             RuntimeWarning,
-        )
-    elif check.outcome == "not better":
-        yield (
-            f"{said}; EM again from the first stage with the process noise held did not simulate "
-            f"better ({check.held_scale:.4g}), so the fit keeps the estimated process noise",
-            RuntimeWarning,
-        )
-    else:
-        held = np.array2string(torch.diagonal(check.held_Rw).cpu().numpy(), precision=3)
-        yield (
-            f"{said}. So EM ran again from the first stage with the process noise held at "
-            f"{held} (diagonal; fit_Rw='auto'), which simulates with a scale of {check.held_scale:.4g}: that "
-            "fit is kept (fit_Rw_ is False). Pass fit_Rw=True to keep the estimated process noise",
-            UserWarning,
         )
 
 
@@ -173,8 +153,8 @@ def explained_messages(explained: float, simulated: float) -> Messages:
             f"{simulated:.2f}, of the smoothed outputs {explained:.2f}): the states follow y through "
             "the process noise, not through f; f and g may sit in a wrong basin (check the scale of "
             "g's output against y's, try other initial values or n_init > 1), or the model is a "
-            "tracking model rather than a simulation model (fit_Rw=False with a small Rw_init "
-            "holds the process noise)",
+            "tracking model rather than a simulation model (focus='prediction' or fit_Rw=True let "
+            "the process noise grow; focus='simulation' with the first stage holds it)",
             RuntimeWarning,
         )
     if explained < EXPLAINED_FLOOR:
@@ -187,10 +167,21 @@ def explained_messages(explained: float, simulated: float) -> Messages:
         )
 
 
-def ending_messages(kept, settings: dict) -> Messages:
-    """How EM ended: interrupted by Ctrl-C, or not converged in ``n_iter`` iterations."""
+def ending_messages(kept, settings: dict, start: Start | None = None) -> Messages:
+    """How EM ended: interrupted by Ctrl-C (in the first stage or in EM), or not converged in
+    ``n_iter`` iterations."""
     n_iter, tol = settings["n_iter"], settings["tol"]
-    if kept.interrupted:
+    if start is not None and start.interrupted:
+        report = start.first_stage
+        where = f"windows of {report.horizon} samples" if report.accepted else "none: the given values"
+        yield (
+            "fit interrupted (KeyboardInterrupt) during the first stage: no EM iteration ran; the fitted "
+            f"attributes hold its best stage completed ({where}) with the starting noise parameters",
+            RuntimeWarning,
+        )
+    elif kept.halted:
+        yield f"EM stopped early: {kept.halted}", RuntimeWarning
+    elif kept.interrupted:
         yield (
             f"fit interrupted (KeyboardInterrupt) after {kept.n_done} EM iterations: the fitted "
             "attributes hold the last completed iteration",

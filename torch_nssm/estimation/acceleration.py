@@ -394,10 +394,22 @@ class NewtonAcceleration(Acceleration):
         return model
 
 
+class SquaremAcceleration(NewtonAcceleration):
+    """``acceleration="squarem"``: squared extrapolation of the noise parameters only
+    (:class:`NoiseExtrapolation`), no Newton steps and so no information computation: an
+    extrapolated iteration costs an EM iteration.  Where ``f`` and ``g`` converge fast (or are held:
+    a simulation model) and the noise parameters slowly, at EM's linear rate."""
+
+    def __init__(self, n_obs: int, flags: list):
+        super().__init__(n_obs, flags)
+        self.newton = False
+
+
 def acceleration_for(name: str | None, *, n_obs: int, history: dict):
     """The loop's :class:`Acceleration` for ``acceleration=name`` (``None``: plain EM); ``history``
     receives the ``"accelerated"`` flags."""
-    if name != "newton":
+    if name not in ("newton", "squarem"):
         return Acceleration()
     history["accelerated"] = []
-    return NewtonAcceleration(n_obs, history["accelerated"])
+    kind = NewtonAcceleration if name == "newton" else SquaremAcceleration
+    return kind(n_obs, history["accelerated"])

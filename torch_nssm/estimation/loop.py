@@ -21,16 +21,13 @@ from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
 from ..inference.random import SequenceStreams
 from .acceleration import acceleration_for
+from .convergence import has_converged
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
 from .mstep import MStepOptions, m_step
 from .snapshot import restore, snapshot
 
-__all__ = ["EMOptions", "EMResult", "EStepCache", "run_em", "CONVERGENCE_WINDOW"]
-
-#: Convergence compares the mean log-likelihood estimate of the last CONVERGENCE_WINDOW iterations
-#: with that of the window before: single particle estimates are too noisy to compare.
-CONVERGENCE_WINDOW = 5
+__all__ = ["EMOptions", "EMResult", "EStepCache", "run_em"]
 
 
 @dataclass
@@ -42,14 +39,16 @@ class EMOptions:
     n_iter : int
         Maximum number of EM iterations.
     tol : float
-        Convergence threshold on the change of the per-observation log-likelihood, averaged over
-        windows of :data:`CONVERGENCE_WINDOW` iterations (0: run all ``n_iter``).
+        Convergence threshold on the change of the log-likelihood estimate per observation and
+        iteration over the window in which every parameter's drift is tested
+        (:func:`.convergence.has_converged`; 0: run all ``n_iter``).
     n_particles_final : int or None
         Grow the particle count geometrically from ``estep.n_particles`` to this at ``n_iter``.
     average_last : int
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
-    acceleration : {None, "newton"}
-        ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
+    acceleration : {None, "squarem", "newton"}
+        ``"squarem"``: squared extrapolation of the noise parameters (single fits).  ``"newton"``:
+        also Newton-type steps for ``f``'s and ``g``'s parameters from the observed
         information, until a step is within one standard error, then squared extrapolation of
         the noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
@@ -98,6 +97,9 @@ class EMResult:
         Why EM stopped early (a numerical failure), else ``None``.
     interrupted : bool
         Stopped by Ctrl-C (``KeyboardInterrupt``) after ``n_done`` iterations.
+    halted : str or None
+        Why EM stopped at a good iterate before converging (the log-likelihood estimate fell far
+        more than its Monte Carlo error after an M-step, which was undone), else ``None``.
     """
 
     model: StateSpaceModel
@@ -107,6 +109,7 @@ class EMResult:
     converged: bool = False
     error: str | None = None
     interrupted: bool = False
+    halted: str | None = None
 
     @property
     def log_likelihood(self) -> float:
@@ -141,15 +144,6 @@ def averaged(model: StateSpaceModel, history: dict, k: int) -> StateSpaceModel:
     mean = lambda key, like: torch.as_tensor(np.mean(history[key][-k:], axis=0)).to(like)  # noqa: E731
     noise = model.noise.replace(**{n: mean(n, v) for n, v in model.noise.parameters().items()})
     return replace(model, Rw=mean("Rw", model.Rw), noise=noise, x0_mean=mean("x0_mean", model.x0_mean))
-
-
-def converged(lls: list[float], n_obs: int, tol: float) -> bool:
-    """Whether the windowed mean log-likelihood changed by less than ``tol`` per observation."""
-    w = CONVERGENCE_WINDOW
-    if tol <= 0 or len(lls) < 2 * w:
-        return False
-    recent, before = np.mean(lls[-w:]), np.mean(lls[-2 * w : -w])
-    return abs(recent - before) / max(n_obs, 1) < tol
 
 
 class _Batch:
@@ -244,6 +238,7 @@ class _Groups:
     active: list = field(default_factory=list)
     snapshots: dict = field(default_factory=dict)  # the iterates before the running M-step
     interrupted: bool = False
+    halted: dict = field(default_factory=dict)  # group -> why it stopped at its previous iterate
 
     @classmethod
     def start(cls, models: list[StateSpaceModel], data: SequenceBatch, shared: bool) -> _Groups:
@@ -272,7 +267,10 @@ class _Groups:
             ll = sum(batch_lls) if self.shared else batch_lls[j]
             record(self.histories[g], self.models[g], ll)
             self.lls[g].append(ll)
-            if converged(self.lls[g], self.n_obs[g], options.tol):
+            scales = self.models[g].noise.convergence_scales(self.n_obs[g])
+            scales = {k: v.detach().cpu().numpy() for k, v in scales.items()}
+            scales["Rw"] = np.full(self.models[g].Rw.shape, math.sqrt(2.0 / max(self.n_obs[g], 1)))
+            if has_converged(self.histories[g], self.n_obs[g], options.tol, scales=scales):
                 self.done[g] = True
             elif it < options.n_iter:
                 update.append(j)
@@ -301,7 +299,9 @@ class _Groups:
                     history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
             n_done, done, error = self.n_done[g], self.done[g], self.errors[g]
             interrupted = self.interrupted
-            out.append(EMResult(model, estep.result(g, model), history, n_done, done, error, interrupted))
+            result = EMResult(model, estep.result(g, model), history, n_done, done, error, interrupted)
+            result.halted = self.halted.get(g)
+            out.append(result)
         return out
 
 
@@ -334,7 +334,8 @@ def run_em(
     """
     groups = _Groups.start(models, data, shared)
     estep = EStepCache(groups.models, data, options, generator, shared, e_step)
-    exact = shared and options.estep.segment_length is None  # acceleration: single fits, exact E-step
+    # acceleration: single fits; Newton steps need the exact E-step (the information)
+    exact = shared and (options.estep.segment_length is None or options.acceleration == "squarem")
     acceleration = acceleration_for(
         options.acceleration if exact else None,
         n_obs=groups.n_obs[0],
@@ -386,9 +387,48 @@ def _iterate(
         if failure is not None:
             groups.stop(still, f"EM stopped at iteration {it + 1}: {failure}")
             still = []
+    still = _halt_on_collapse(groups, still, it, estep)
     for g in still:
         groups.n_done[g] += 1
     groups.active = still
+
+
+#: An iteration whose log-likelihood estimate falls by more than this per observation (and by more
+#: than COLLAPSE_MIN) is undone and ends EM: EM does not lower the likelihood, and a particle
+#: estimate's Monte Carlo error is a few units; such a fall means a degenerate filter (a noise
+#: parameter shrinking towards zero) or an M-step that should not have been taken.
+COLLAPSE_PER_OBS = 0.5
+COLLAPSE_MIN = 100.0
+
+
+def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCache) -> list[int]:
+    """The groups of ``still`` whose new log-likelihood estimate did not collapse; the others get
+    their previous iterate back (and its E-step) and stop, with the reason in ``groups.halted``."""
+    if not still:
+        return still
+    lls = estep.latest.log_likelihood.tolist()
+    fallen = []
+    for j, g in enumerate(still):
+        ll = sum(lls) if groups.shared else lls[j]
+        drop = groups.lls[g][-1] - ll
+        if drop > max(COLLAPSE_PER_OBS * groups.n_obs[g], COLLAPSE_MIN):
+            fallen.append(g)
+            groups.halted[g] = (
+                f"the log-likelihood estimate fell from {groups.lls[g][-1]:.6g} to {ll:.6g} at iteration "
+                f"{it + 1} "
+                "(far more than its Monte Carlo error: the particle filter degenerates, e.g. as a noise "
+                "parameter shrinks, or the M-step went wrong), so that iteration was undone and EM stopped "
+                f"at iteration {it}"
+            )
+    if not fallen:
+        return still
+    for g in fallen:
+        groups.models[g] = restore(groups.snapshots[g])
+        for key in ("rejected.f", "rejected.g"):  # the flags of the undone M-step
+            if len(groups.histories[g][key]) > len(groups.lls[g]) - 1:
+                groups.histories[g][key].pop()
+    _attempt(estep, fallen, it)
+    return [g for g in still if g not in fallen]
 
 
 def _m_step(groups: _Groups, ids: list[int], data, estep, options: EMOptions, generator, it: int) -> tuple:

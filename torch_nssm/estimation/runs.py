@@ -11,6 +11,7 @@ every warning of a fit or a study from it.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
@@ -70,6 +71,9 @@ class EMRunner:
     device : torch.device
     fit_Rw : bool or None
         Overrides the estimator's ``fit_Rw`` in every run (a warm start continues the fit's).
+    hold_modules : bool
+        EM keeps ``f``'s and ``g``'s parameters and the first state's prior (a simulation model's
+        runs: those of the first stage).
     """
 
     make_options: Callable[..., EMOptions]
@@ -77,6 +81,7 @@ class EMRunner:
     n_init: int
     device: torch.device
     fit_Rw: bool | None = None
+    hold_modules: bool = False
 
     def __call__(
         self, start: Start, data: SequenceBatch, r: int, *, progress: bool = True, fit_Rw: bool | None = None
@@ -87,13 +92,22 @@ class EMRunner:
             model, generator, stable = start.run_start(r, data, self.device)
             desc = "robust EM" if self.n_init == 1 else f"robust EM (run {r + 1}/{self.n_init})"
             options = self.make_options(desc, fit_Rw=self.fit_Rw if fit_Rw is None else fit_Rw)
+            if self.hold_modules:  # a simulation model: its f, g and first state are the first stage's
+                options.mstep.fit_modules = options.mstep.fit_x0 = False
             if not progress:
                 options.progress = None
             return run_em([model], data, options, generator)[0], stable
 
-    def rerun(self, start: Start, data: SequenceBatch) -> EMResult:
-        """EM again from ``start``'s model with the process noise held (the ``fit_Rw="auto"`` re-run)."""
-        return self(start, data, 0, progress=True, fit_Rw=False)[0]
+    def without_iterations(self) -> EMRunner:
+        """This runner with ``n_iter=0``: each run is the E-step at its start."""
+
+        def make_options(*args, **kwargs) -> EMOptions:
+            options = self.make_options(*args, **kwargs)
+            options.n_iter = 0
+            return options
+
+        return dataclasses.replace(self, make_options=make_options)
+
 
 
 def fit_runs(runner: EMRunner, start: Start, data: SequenceBatch, n_jobs: int | None) -> list[tuple]:
@@ -147,6 +161,8 @@ class RunOutcome:
     rejections : list of Rejection
     stable_start : bool
         Its start's noise-free simulation stayed bounded (False: no jittered draw did).
+    halted : str or None
+        Why EM stopped at a good iterate before converging (:attr:`~.loop.EMResult.halted`).
     """
 
     error: str | None
@@ -157,6 +173,7 @@ class RunOutcome:
     log_likelihood: float
     rejections: list[Rejection] = field(default_factory=list)
     stable_start: bool = True
+    halted: str | None = None
 
     @classmethod
     def of(cls, result: EMResult, stable_start: bool = True) -> RunOutcome:
@@ -169,6 +186,7 @@ class RunOutcome:
             result.log_likelihood,
             rejections_of(result),
             stable_start,
+            result.halted,
         )
 
 

@@ -298,6 +298,13 @@ class MeasurementNoise:
         params = self.parameters()
         return [self.replace(**{n: v[b] for n, v in params.items()}) for b in range(self.Rv.shape[0])]
 
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        """The relative standard error of each positive parameter (complete data: the latent scales
+        known) at ``n_obs`` observations, by name: EM has converged in a parameter once its changes
+        are small against this (:func:`torch_nssm.estimation.convergence.has_converged`).  A
+        variance estimated from ``n`` samples has relative standard error ``sqrt(2 / n)``."""
+        return {"Rv": torch.full_like(self.Rv, math.sqrt(2.0 / max(n_obs, 1)))}
+
     def is_valid(self) -> Tensor:
         """Admissible parameters (:meth:`admissible`) and a positive-definite ``Rv``, per batch entry
         (shape ``(...)``)."""

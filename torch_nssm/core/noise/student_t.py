@@ -126,6 +126,18 @@ def solve_dof(c: Tensor, dof_min: float = 0.1, dof_max: float = 1000.0, n_bisect
     return torch.exp(0.5 * (lo + hi))
 
 
+def dof_relative_standard_error(dof: Tensor, p: int, n_obs: int) -> Tensor:
+    """``se(dof) / dof`` from the Fisher information of the degrees of freedom of ``n_obs``
+    ``p``-variate t samples with a known scale (Lange, Little & Taylor 1989):
+    ``I = psi'(v/2)/4 - psi'((v+p)/2)/4 - p (v+p+4) / (2 v (v+p) (v+p+2))``."""
+    v = dof.clamp_min(1e-6)
+    info = (
+        0.25 * (torch.special.polygamma(1, v / 2) - torch.special.polygamma(1, (v + p) / 2))
+        - p * (v + p + 4) / (2 * v * (v + p) * (v + p + 2))
+    )
+    return 1.0 / (v * torch.sqrt(info.clamp_min(1e-300) * max(n_obs, 1)))
+
+
 def sample_student_t(shape: tuple[int, ...], chol: Tensor, dof: Tensor | float, generator=None) -> Tensor:
     """Draws ``shape + (p,)`` of ``St(0, chol chol^T, dof)`` (Gaussian for infinite ``dof``)."""
     draws = random_source(generator, chol)
@@ -382,3 +394,8 @@ class StudentTNoise(JointScaleNoise):
             )
             shape["dof"] = (cross, nu * l_nu + nu**2 * l_nunu)
         return lam, h_qq, shape
+
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        scales = super().convergence_scales(n_obs)
+        scales["dof"] = dof_relative_standard_error(self.dof, self.Rv.shape[-1], n_obs)
+        return scales

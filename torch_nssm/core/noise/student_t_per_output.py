@@ -24,6 +24,7 @@ from .student_t import (
     absorbing_message,
     check_bounds,
     check_dof,
+    dof_relative_standard_error,
     dof_score,
     latent_scale_expectations,
     solve_dof,
@@ -190,6 +191,11 @@ class StudentTPerOutputNoise(MeasurementNoise):
             new = solve_dof(stats["dof_c"] / n.clamp_min(1), *self.spec.dof_bounds).to(self.dof)
             dof = torch.where(seen, new, self.dof)
         return self.replace(Rv=torch.diag_embed(var), dof=dof)
+
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        scales = super().convergence_scales(n_obs)
+        scales["dof"] = dof_relative_standard_error(self.dof, 1, n_obs)
+        return scales
 
     def sample(self, shape, generator=None) -> Tensor:
         draws = random_source(generator, self.Rv)
