@@ -26,6 +26,7 @@ Usage (one torch thread; plants run one after the other)::
     python benchmarks/real_records.py --out results.json          # the full suite
     python benchmarks/real_records.py --plants pendulum --outliers clean,3 \\
         --estimator-options '{"n_particles": 100}'
+    python benchmarks/real_records.py --table a.json b.json       # the tables of saved rows
 
 From Python: ``sys.path.insert(0, "benchmarks")``, ``from real_records import run_plant``;
 ``run_plant("pendulum", "clean", {"n_particles": 100})`` returns the row as a dict
@@ -149,8 +150,10 @@ def _notes(ours: dict) -> list[str]:
             notes.append(word)
     if ours.get("se_error"):
         notes.append("s.e. " + ours["se_error"].split(":")[0])
-    elif ours.get("se_warnings"):
-        notes.append(f"s.e.: {len(ours['se_warnings'])} warning(s)")
+    # torch's own DeprecationWarnings (torch.jit.script, raised inside torch) are left out of the notes
+    se_warnings = [w for w in ours.get("se_warnings") or [] if w["category"] != "DeprecationWarning"]
+    if se_warnings:
+        notes.append(f"s.e.: {len(se_warnings)} warning(s)")
     return notes
 
 
@@ -350,7 +353,7 @@ def markdown_table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['plant']} | {r['data']} | {oe_cells[0]} | {oe_cells[1]} | {true_cell} | {ours_cell} | "
             f"{_g(r['ratio_ours_oe_linear'], 2)} | {ours.get('n_iter', '-')} | {_g(ours.get('dof'), 2)} | "
-            f"{flagged} | {'; '.join(r['notes'])} |"
+            f"{flagged} | {'; '.join(_notes(ours))} |"
         )
     return "\n".join(lines)
 
@@ -451,7 +454,17 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--quick", action="store_true", help="short records, few iterations (smoke run)")
     parser.add_argument("--estimator-options", default="{}", help="JSON keyword arguments for our estimator")
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
+    parser.add_argument(
+        "--table", nargs="+", default=None, metavar="JSON",
+        help="print the tables of rows saved by --out (several files: concatenated) and run nothing",
+    )
     args = parser.parse_args(argv)
+    if args.table:
+        rows = [r for path in args.table for r in json.loads(Path(path).read_text())["rows"]]
+        print(markdown_table(rows))
+        print()
+        print(parameter_table(rows))
+        return rows
     plants = None
     if args.plants:
         plants = [p.strip() for p in args.plants.split(",") if p.strip()]
