@@ -38,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -151,9 +152,11 @@ def _notes(ours: dict) -> list[str]:
     if ours.get("se_error"):
         notes.append("s.e. " + ours["se_error"].split(":")[0])
     # torch's own DeprecationWarnings (torch.jit.script, raised inside torch) are left out of the notes
-    se_warnings = [w for w in ours.get("se_warnings") or [] if w["category"] != "DeprecationWarning"]
-    if se_warnings:
-        notes.append(f"s.e.: {len(se_warnings)} warning(s)")
+    for w in ours.get("se_warnings") or []:
+        if w["category"] == "DeprecationWarning":
+            continue
+        missing = re.search(r"no standard error for (.*?);", w["message"])
+        notes.append(f"no s.e. for {missing.group(1)}" if missing else "s.e. warning: " + w["message"][:60])
     return notes
 
 
