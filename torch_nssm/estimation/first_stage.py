@@ -333,7 +333,8 @@ def _record_starts(model: StateSpaceModel, data: SequenceBatch) -> Tensor:
     sane first state for the windows there."""
     states = free_run(model, data.u)[0]
     fallback = model.per_sequence("x0_mean", data.n_sequences).unsqueeze(0).expand_as(states)
-    scale = max(1.0, float(model.x0_mean.abs().max() + model.x0_cov.diagonal().sqrt().max()))
+    spread = 0.0 if model.x0_cov is None else float(model.x0_cov.diagonal().sqrt().max())
+    scale = max(1.0, float(model.x0_mean.abs().max()) + spread)
     bad = ~torch.isfinite(states).all(-1, keepdim=True) | (states.abs() > 1e6 * scale).any(-1, keepdim=True)
     bad = torch.cummax(bad.to(torch.uint8), dim=0).values.bool()  # from the first bad step on
     return torch.where(bad, fallback, states)

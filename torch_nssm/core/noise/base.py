@@ -211,12 +211,55 @@ class NoiseSpec:
 DOWNWEIGHTED_SHARE = 0.4
 
 
+#: Odds ratio of two consecutive down-weighted samples (weight below 0.5) at and above which the
+#: down-weighted samples are said to cluster in time.  Model error leaves serially correlated
+#: residuals, so its down-weighted samples come in runs; isolated glitches and genuinely
+#: heavy-tailed sensor noise leave them independent of their neighbours (odds ratio near 1).
+CLUSTER_ODDS = 3.0
+
+
+def _record_columns(weights) -> list[np.ndarray]:
+    """The outlier weights as a list of 1-D time series (one per record and output)."""
+    ws = weights if isinstance(weights, list) else [weights]
+    out = []
+    for a in ws:
+        a = np.asarray(a, dtype=float)
+        a = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
+        out.extend(a[:, j] for j in range(a.shape[1]))
+    return out
+
+
+def clustering_odds(weights) -> float:
+    """Odds ratio that a sample is down-weighted (weight below 0.5) given that the previous one is,
+    against given that it is not, pooled over records and outputs: 1 for down-weighted samples
+    scattered independently in time, large for runs of them; 1 when none or all are down-weighted."""
+    counts = np.zeros((2, 2))
+    for w in _record_columns(weights):
+        if w.size < 2:
+            continue
+        valid = np.isfinite(w[:-1]) & np.isfinite(w[1:])
+        a, b = (w[:-1] < 0.5)[valid], (w[1:] < 0.5)[valid]
+        for i in (0, 1):
+            for j in (0, 1):
+                counts[i, j] += np.sum((a == bool(i)) & (b == bool(j)))
+    if counts[1].sum() == 0 or counts[0].sum() == 0:
+        return 1.0
+    c = counts + 0.5
+    return float(c[1, 1] * c[0, 0] / (c[1, 0] * c[0, 1]))
+
+
 def downweighted_share(weights) -> float:
     """Share of the finite outlier ``weights`` (an array or a list of them) below 0.5."""
     ws = weights if isinstance(weights, list) else [weights]
     w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
     w = w[np.isfinite(w)]
     return float(np.mean(w < 0.5)) if w.size else 0.0
+
+
+def absorbed_in_runs(weights) -> bool:
+    """Whether the down-weighted samples look like model error rather than outliers: they come in
+    runs (:func:`clustering_odds` at least :data:`CLUSTER_ODDS`) or are nearly all of them."""
+    return downweighted_share(weights) > 0.9 or clustering_odds(weights) >= CLUSTER_ODDS
 
 
 @dataclass(frozen=True)
@@ -331,9 +374,9 @@ class MeasurementNoise:
     def absorption_message(self, weights) -> str | None:
         """Words for a fit whose noise model explains too much of the data (``None`` if it does
         not), from its outlier ``weights``: more than :data:`DOWNWEIGHTED_SHARE` of the samples
-        weighted below 0.5."""
+        weighted below 0.5, in runs (:func:`absorbed_in_runs`)."""
         share = downweighted_share(weights)
-        if share <= DOWNWEIGHTED_SHARE:
+        if share <= DOWNWEIGHTED_SHARE or not absorbed_in_runs(weights):
             return None
         return (
             f"the measurement noise absorbs much of the data: {100 * share:.0f} % of the samples have an "

@@ -23,6 +23,7 @@ from .base import (
     DOWNWEIGHTED_SHARE,
     MaskedScale,
     NoiseSpec,
+    absorbed_in_runs,
     downweighted_share,
     masked_scale,
     random_source,
@@ -194,10 +195,15 @@ DOF_FLOOR = 1.0
 
 def absorbing_message(dof, weights) -> str | None:
     """Words for a Student-t fit whose noise model explains too much (``None`` if it does not):
-    ``dof`` (one or one per output) below :data:`DOF_FLOOR` or too many down-weighted samples."""
+    ``dof`` (one or one per output) below :data:`DOF_FLOOR` or too many down-weighted samples, and
+    the down-weighted samples in runs (:func:`absorbed_in_runs`).  A low dof with isolated
+    down-weighted samples is what gross, isolated glitches give (a Student-t fits a clean bulk with
+    far spikes by a dof near 1): nothing to report."""
     share = downweighted_share(weights)
     low = np.min(np.atleast_1d(dof)) < DOF_FLOOR
     if not low and share <= DOWNWEIGHTED_SHARE:
+        return None
+    if not absorbed_in_runs(weights):
         return None
     return (
         f"the measurement noise absorbs much of the data: dof {np.round(np.atleast_1d(dof), 2).tolist()}, "
