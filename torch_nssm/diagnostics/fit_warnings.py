@@ -159,10 +159,11 @@ def explained_messages(explained: float, simulated: float) -> Messages:
         )
     if explained < EXPLAINED_FLOOR:
         yield (
-            f"g explains almost none of the variance of y (robust R² of the smoothed outputs "
-            f"{explained:.3f}): the fit may sit where g is nearly constant and the noise explains "
-            "the data; check the scale of g's output against y's, try other initial values of g, "
-            "or n_init > 1",
+            f"the model explains almost none of the variance of y (robust R² of the smoothed outputs "
+            f"{explained:.3f}): the fit may sit where the modelled output g(x, u) is nearly constant "
+            "and the noise explains the data; check the scale of the modelled output against y's "
+            "(the states f produces and, where g has free parameters, g's), try other initial "
+            "values, or n_init > 1",
             RuntimeWarning,
         )
 
