@@ -152,3 +152,28 @@ def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypa
     assert float(result.model.g.c) > 0.5  # the iterate before the ruinous M-step
     assert len(result.history["log_likelihood"]) == 3
     assert result.log_likelihood == pytest.approx(result.history["log_likelihood"][-1], abs=50)
+
+
+def test_the_measurement_noise_stays_above_the_rounding_of_an_output_on_a_grid():
+    """An output recorded on a grid of step q (an encoder) has a measurement-noise variance of at
+    least q**2 / 12, the rounding's own: EM's update is floored there, a start below it raised."""
+    from torch_nssm.core.noise import StudentTNoise
+    from torch_nssm.estimation.start import measurement_floor
+
+    noise = StudentTNoise.initial(torch.tensor([[1e-6, 0.0], [0.0, 4.0]], dtype=torch.float64), 5.0)
+    raised = noise.floored(torch.tensor([1e-2, 1.0], dtype=torch.float64))
+    assert torch.allclose(raised.Rv, torch.tensor([[1e-2, 0.0], [0.0, 4.0]], dtype=torch.float64))
+    assert noise.floored(torch.zeros(2, dtype=torch.float64)) is noise
+    d = make_paper_example(n_samples=200, outlier_fraction=0.0, random_state=0)
+    q = 0.1
+    y = q * np.round(np.asarray(d.y) / q)
+    est = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_particles=40, n_iter=2,
+        random_state=0, Rv_init=[[1e-6]],
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est.fit(d.u, y)
+    assert est.Rv_[0, 0] >= q**2 / 12 * (1 - 1e-9)
+    batch = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)[0]
+    assert measurement_floor(batch) is None  # continuous data: no floor

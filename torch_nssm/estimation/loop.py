@@ -379,6 +379,9 @@ def _iterate(
     still, rejected = _m_step(groups, ids, sub_data, sub_estep, options, generator, it)
     if still:
         groups.models[0] = acceleration.after_mstep(groups.models[0], rejected)
+        if options.mstep.Rv_floor is not None and options.mstep.fit_Rv:  # an extrapolated noise too
+            floored = groups.models[0].noise.floored(options.mstep.Rv_floor)
+            groups.models[0] = replace(groups.models[0], noise=floored)
         failure = _attempt(estep, still, it + 1)
         undo = acceleration.after_estep(groups.lls[0][-1], estep.latest if failure is None else None)
         if undo is not None:  # the accelerated step lost likelihood or failed: the M-step's instead

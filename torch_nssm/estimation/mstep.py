@@ -84,6 +84,9 @@ class MStepOptions:
     fit_modules : bool
         Whether ``f``'s and ``g``'s parameters are updated (False: only the noise parameters and
         the initial-state prior; a simulation model's, whose modules the first stage fitted).
+    Rv_floor : Tensor or None
+        Lower bound of each output's measurement-noise variance ``(p,)`` (an output recorded on a
+        grid: the rounding's variance, :func:`~torch_nssm.estimation.start.measurement_floor`).
     """
 
     optimizer: str = "lbfgs"
@@ -94,6 +97,7 @@ class MStepOptions:
     fit_Rv: bool = True
     rows_per_step: int | None = None
     fit_modules: bool = True
+    Rv_floor: Tensor | None = None
 
 
 @dataclass
@@ -498,6 +502,8 @@ def m_step(
         fit_Rv=options.fit_Rv,
         fit_shape=options.fit_shape,
     )
+    if options.Rv_floor is not None and options.fit_Rv:
+        noise = noise.floored(options.Rv_floor)
     if options.fit_x0:
         x0_mean, x0_cov = initial_state_update(est, Rw, shared=shared)
     else:

@@ -94,6 +94,7 @@ class EMRunner:
             options = self.make_options(desc, fit_Rw=self.fit_Rw if fit_Rw is None else fit_Rw)
             if self.hold_modules:  # a simulation model: its f, g and first state are the first stage's
                 options.mstep.fit_modules = options.mstep.fit_x0 = False
+            options.mstep.Rv_floor = start.Rv_floor
             if not progress:
                 options.progress = None
             return run_em([model], data, options, generator)[0], stable

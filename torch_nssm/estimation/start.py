@@ -25,7 +25,7 @@ import numpy as np
 import torch
 from sklearn.utils import check_random_state
 
-from .._stats import MAD_TO_STD, robust_scale
+from .._stats import MAD_TO_STD, quantization_step, robust_scale
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.parametric import LinearInParameters
 from ..inference import prediction
@@ -131,6 +131,10 @@ class Start:
         EM keeps ``f``'s and ``g``'s parameters (a simulation model, :func:`plan_start`).
     interrupted : bool
         Ctrl-C came during the first stage: the start is its best stage so far, and no EM runs.
+    Rv_floor : Tensor or None
+        Lower bound of each output's measurement-noise variance, ``(p,)``: ``q**2 / 12`` for an
+        output recorded on a grid of step ``q`` (an encoder, an A/D converter; 0 elsewhere), the
+        variance of the rounding itself (:func:`measurement_floor`).  ``None``: no output on a grid.
     """
 
     model: StateSpaceModel
@@ -144,6 +148,7 @@ class Start:
     staged_run: tuple | None = field(default=None, repr=False)
     hold_modules: bool = False
     interrupted: bool = False
+    Rv_floor: torch.Tensor | None = None
 
     def run_start(self, r: int, data: SequenceBatch, device: torch.device) -> tuple:
         """EM run ``r``'s start, its particle generator and whether its simulation stays bounded:
@@ -189,10 +194,25 @@ def plan_start(
         start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
         start.staged = copy_model(start.model)
         start.hold_modules = True
+    start.Rv_floor = measurement_floor(data)
+    if start.Rv_floor is not None and not settings.Rv_given:
+        start.model = replace(start.model, noise=start.model.noise.floored(start.Rv_floor))
     if restarts:
         start.limit, start.divergent_step = divergence_limit(start.model, data, check=not settings.warm)
         start.seeds = restart_seeds(settings.random_state, settings.n_runs)
     return start
+
+
+def measurement_floor(data: SequenceBatch) -> torch.Tensor | None:
+    """``q**2 / 12`` per output recorded on a grid of step ``q`` (:func:`quantization_step`), else 0;
+    ``None`` when no output is.  A measurement noise below the rounding's own variance is not a
+    sensor's noise: EM gets there when the model tracks every encoder step, and a Student-t noise
+    then collapses its dof and flags regular samples as outliers."""
+    y = torch.cat(data.unpad(data.y)).detach().cpu().numpy()
+    q = quantization_step(y)
+    if not np.any(q > 0):
+        return None
+    return torch.as_tensor(q**2 / 12.0, dtype=data.y.dtype, device=data.y.device)
 
 
 #: A process noise not given starts at this fraction of the variance of each state's change per step

@@ -28,7 +28,7 @@ import copy
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar
 
 import numpy as np
@@ -384,6 +384,15 @@ class MeasurementNoise:
             "is absorbing what f and g cannot explain (model error, not outliers): check the residuals "
             "(torch_nssm.diagnostics) or improve the model"
         )
+
+    def floored(self, floor: Tensor) -> MeasurementNoise:
+        """This noise with each output's variance ``Rv[j, j]`` raised to at least ``floor[j]`` (the
+        difference added to the diagonal, so ``Rv`` stays positive definite)."""
+        diag = self.Rv.diagonal(dim1=-2, dim2=-1)
+        lift = torch.clamp(floor.to(self.Rv) - diag, min=0.0)
+        if not bool((lift > 0).any()):
+            return self
+        return replace(self, Rv=self.Rv + torch.diag_embed(lift))
 
     # ------------------------------------------------------------------ the filter
     def evaluator(self, scale: MaskedScale, n_particles: int) -> NoiseEvaluator:
