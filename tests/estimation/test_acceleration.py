@@ -179,5 +179,5 @@ def test_acceleration_arguments():
             PaperTransition(), PaperObservation(), acceleration="newton", segment_length=20, **kw
         ).fit(d.u, d.y)
     proto = RobustNSSMEstimator(PaperTransition(), PaperObservation(), acceleration="newton", **kw)
-    with pytest.raises(ValueError, match="acceleration applies to fit"):
+    with pytest.raises(ValueError, match="acceleration='newton' applies to fit"):
         fit_independent(proto, [d.u, d.u], [d.y, d.y])

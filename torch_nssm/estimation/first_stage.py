@@ -442,12 +442,14 @@ def simulation_error_fit(
     try:
         ladder.run(plan, report, "continuation", early_stop=auto)
         full = int(data.lengths.max())
-        explained = 1.0 - ladder.best[0] ** 2
+        explained = 1.0 - min(float(ladder.best[0]), 1e100) ** 2  # judge: relative scale, may be huge
         if auto and plan[0] < full and DIRECT_RANGE[0] <= explained < DIRECT_RANGE[1]:
             params.assign(ladder.theta0)
             ladder.run([full], report, "direct", early_stop=False)
     except KeyboardInterrupt:  # Ctrl-C: the best stage completed so far
         report.interrupted = True
+    except (OverflowError, FloatingPointError):  # data at the edge of the floats: the best stage so far
+        pass
     judged, theta_best, window_x0, record_x0, horizon, errors = ladder.best
     report.seconds = time.perf_counter() - clock
     if window_x0 is None:  # no stage simulated the records better than the start

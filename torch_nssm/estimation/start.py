@@ -188,12 +188,23 @@ def plan_start(
             start.staged, start.staged_run = copy_model(start.model), kept_run
     simulation_model = start.staged is not None and start.first_stage.explained >= SIMULATION_MODEL_R2
     if not settings.Rw_given and not settings.warm:
-        share = PROCESS_NOISE_SHARE * (SIMULATION_SHARE if simulation_model else 1.0)
-        start.model = replace(start.model, Rw=scaled_process_noise(start.model, data, share))
+        if start.staged is None:  # at least the general default: the start's steps may be tiny
+            Rw = scaled_process_noise(start.model, data, UNEXPLAINED_SHARE)
+            Rw = torch.maximum(Rw, torch.diag(torch.diagonal(start.model.Rw)))
+        else:
+            share = PROCESS_NOISE_SHARE * (SIMULATION_SHARE if simulation_model else 1.0)
+            Rw = scaled_process_noise(start.model, data, share)
+        start.model = replace(start.model, Rw=Rw)
     if simulation_model and settings.focus == "simulation":
         start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
         start.staged = copy_model(start.model)
         start.hold_modules = True
+    elif start.staged is not None:
+        # EM estimates the first state from its smoother, under the given prior: the first stage's
+        # record first state is one of the window fit's local parameters, which nothing ties to the
+        # prior, and a g that does not determine the state (a cos) lets it wander far (x0 = -19
+        # on the paper's example), where a prior of the given spread holds EM's smoother
+        start.model = replace(start.model, x0_mean=model.x0_mean, x0_cov=model.x0_cov)
     start.Rv_floor = measurement_floor(data)
     if start.Rv_floor is not None and not settings.Rv_given:
         start.model = replace(start.model, noise=start.model.noise.floored(start.Rv_floor))
@@ -216,10 +227,16 @@ def measurement_floor(data: SequenceBatch) -> torch.Tensor | None:
 
 
 #: A process noise not given starts at this fraction of the variance of each state's change per step
-#: along the start's noise-free simulation (a slowly varying state gets a small one); a simulation
-#: model's, whose simulation explains most of ``y``, at SIMULATION_SHARE of that.
+#: along the start's noise-free simulation (a slowly varying state gets a small one) after a kept
+#: first stage; a simulation model's, whose simulation explains most of ``y``, at SIMULATION_SHARE of
+#: that; a start without a kept first stage, whose simulation does not explain ``y``, at
+#: UNEXPLAINED_SHARE, and at least the general default ``0.1 * I``: its states must reach what
+#: ``y`` asks through the process noise in the first E-steps (a small one leaves them on the model's
+#: simulation: on the paper's example EM then settles where g is nearly constant, and a network at
+#: its identity start, whose simulation hardly moves, does not learn).
 PROCESS_NOISE_SHARE = 0.1
 SIMULATION_SHARE = 0.1
+UNEXPLAINED_SHARE = 1.0
 
 
 @torch.no_grad()
