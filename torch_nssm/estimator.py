@@ -240,8 +240,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         ``history_["rejected.f"]``/``["rejected.g"]``: the iterations whose M-step of that module
         was undone (a warning says so).  With ``n_init > 1``: the kept run's.
     outlier_weights_ : ndarray of shape (N,) or (N, p), or list of them for several records
-        ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier (NaN where ``y_k`` is
-        missing); per output for ``"student-t-per-output"``.
+        ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier, about 1 a regular
+        sample, above 1 a small residual (up to ``(dof + p) / dof``); NaN where ``y_k`` is
+        missing; per output for ``"student-t-per-output"``.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
     first_stage_ : FirstStageReport or None
