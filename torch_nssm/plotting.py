@@ -108,12 +108,16 @@ def _other_family_references(true_values, history) -> dict[str, str]:
     """The plotted noise entries whose given value belongs to another noise family than the fit's,
     with the words to label them: a Gaussian variance is not the true value of a Student-t scale
     (nor the reverse).  The data's family is ``true_values["noise"]`` (a simulation's
-    ``data.params``); the fit is heavy-tailed when its ``dof`` trajectory ends finite."""
+    ``data.params``); the fit is heavy-tailed when a shape parameter of its noise family (an entry
+    of the history beside ``f``, ``g``, ``Rw`` and ``Rv``, e.g. ``dof``) ends finite."""
     noise = dict(true_values or {}).get("noise")
     if not isinstance(noise, str):
         return {}
-    dof = history.get("dof")
-    fit_heavy = dof is not None and bool(np.all(np.isfinite(np.asarray(dof, dtype=float)[-1])))
+    shapes = [
+        k for k in history
+        if not k.startswith(("f.", "g.", "rejected.")) and k not in ("Rw", "Rv", "x0_cov", *_NOT_DRAWN)
+    ]
+    fit_heavy = any(bool(np.all(np.isfinite(np.asarray(history[k], dtype=float)[-1]))) for k in shapes)
     data_heavy = noise != "gaussian"
     if fit_heavy == data_heavy:
         return {}
