@@ -136,8 +136,9 @@ class ModelState:
 
     def _initial_states(self, model: StateSpaceModel, data: SequenceBatch, x0, random_state=None) -> tuple:
         """Prior mean and covariance of the first state of each record of ``data`` for ``x0``:
-        ``"estimate"`` (from the record's first outputs) or values ``(nx,)``, ``(B, nx)`` or a list
-        of ``(nx,)`` (their covariance: the fitted ``x0_cov_``)."""
+        ``"estimate"`` (from the record's first outputs), values ``(nx,)``, ``(B, nx)`` or a list
+        of ``(nx,)`` (their covariance: the fitted ``x0_cov_``), or the pair ``(mean, cov)`` that
+        :meth:`initial_state` returns (``cov`` ``(nx, nx)`` or ``(B, nx, nx)``)."""
         B, nx = data.n_sequences, model.state_dim
         if isinstance(x0, str):
             if x0 != "estimate":
@@ -146,6 +147,9 @@ class ModelState:
                 )
             return self._estimate_initial_states(model, data, self._generator(data.y.device, random_state))
         kw = dict(dtype=self.dtype, device=data.y.device)
+        cov = None
+        if _is_mean_cov_pair(x0):
+            x0, cov = x0
         try:
             values = torch.as_tensor(np.asarray(x0, dtype=float), **kw)
         except (TypeError, ValueError) as exc:
@@ -159,7 +163,9 @@ class ModelState:
             )
         if not bool(torch.isfinite(values).all()):
             raise ValueError("x0 contains NaN or infinite values")
-        return values, model.per_sequence("x0_cov", B)
+        if cov is None:
+            return values, model.per_sequence("x0_cov", B)
+        return values, _initial_covariances(cov, B, nx, **kw)
 
     def _estimate_initial_states(self, model: StateSpaceModel, data: SequenceBatch, generator) -> tuple:
         """Smoothed distribution of each record's first state given its first ``INITIAL_SAMPLES``
@@ -308,3 +314,37 @@ def default_rv_init(y: np.ndarray) -> torch.Tensor:
     s2 = robust_scale(y, axis=0) ** 2
     var = np.where(s2 > 0, s2, np.nanvar(y, axis=0))
     return torch.from_numpy(0.02 * np.where(var > 0, var, 1.0))
+
+
+def _is_mean_cov_pair(x0) -> bool:
+    """Whether ``x0`` is the pair ``(mean, cov)`` of :meth:`RobustNSSMEstimator.initial_state`: a
+    tuple of two arrays, the second with one dimension more than the first."""
+    if not isinstance(x0, tuple) or len(x0) != 2:
+        return False
+    try:
+        mean_dim, cov_dim = np.ndim(x0[0]), np.ndim(x0[1])
+    except ValueError:  # ragged
+        return False
+    return mean_dim in (1, 2) and cov_dim == mean_dim + 1
+
+
+def _initial_covariances(cov, B: int, nx: int, *, dtype, device) -> torch.Tensor:
+    """The covariances ``(B, nx, nx)`` of the first states from ``cov`` ``(nx, nx)`` (every record)
+    or ``(B, nx, nx)`` (one per record), each checked symmetric positive definite."""
+    try:
+        values = torch.as_tensor(np.asarray(cov, dtype=float), dtype=dtype, device=device)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"x0's covariance must be numbers of shape ({nx}, {nx}) or ({B}, {nx}, {nx})"
+        ) from exc
+    if values.shape == (nx, nx):
+        values = values.expand(B, nx, nx)
+    if tuple(values.shape) != (B, nx, nx):
+        raise ValueError(
+            f"x0 = (mean, cov): cov must have shape ({nx}, {nx}) or ({B}, {nx}, {nx}), "
+            f"got {tuple(values.shape)}"
+        )
+    for b in range(B):
+        V.check_covariance(values[b], "x0's covariance", nx, dtype=dtype, device=device)
+    return values
+

@@ -62,6 +62,18 @@ def _as_2d(t: Tensor, name: str) -> Tensor:
     )
 
 
+def _transposed_hint(name: str, t: Tensor) -> str:
+    """For a 2-D record with fewer rows than columns: it looks transposed (rows are samples)."""
+    if t.dim() != 2 or t.shape[0] >= t.shape[1]:
+        return ""
+    rows, cols = t.shape
+    return (
+        f"; {name} has shape ({rows}, {cols}): rows are samples and columns are channels, so this is "
+        f"{rows} sample(s) of {cols} channels. Is it transposed? Pass {name}.T (shape ({cols}, {rows}))"
+        + (f" or a 1-D array of {cols} samples" if rows == 1 else "")
+    )
+
+
 def _is_array(value) -> bool:
     """An array object (ndarray, tensor, pandas object...), not a number or a nested list."""
     if isinstance(value, (np.ndarray, Tensor)):
@@ -135,7 +147,10 @@ def as_sequence_list(
         if ys is not None:
             yb = _as_2d(_to_tensor(ys[b], f"y{tag}", dtype, device), f"y{tag}")
             if yb.shape[0] < 2:
-                raise ValueError(f"y{tag} must have at least 2 samples, got {yb.shape[0]} sample(s)")
+                raise ValueError(
+                    f"y{tag} must have at least 2 samples, got {yb.shape[0]} sample(s)"
+                    f"{_transposed_hint(f'y{tag}', yb)}"
+                )
             if torch.isinf(yb).any():
                 raise ValueError(f"y{tag} contains infinite values (use NaN for missing outputs)")
             if torch.isnan(yb).all():
@@ -169,13 +184,16 @@ def as_sequence_list(
                 hint = ""
                 if raw.dim() == 1:
                     hint = f"; a 1-D u is one input column: Reshape your data to (n_samples, {n_inputs})"
+                elif ub.shape[0] == n_inputs and ub.shape[1] > 1:
+                    hint = _transposed_hint(f"u{tag}", ub)
                 raise ValueError(
                     f"u{tag} has {ub.shape[1]} input columns, expected {n_inputs} "
                     f"(the model's number of inputs){hint}"
                 )
         if yb is not None and ub.shape[0] != yb.shape[0]:
+            hint = _transposed_hint(f"u{tag}", ub) if ub.shape[1] == yb.shape[0] else ""
             raise ValueError(
-                f"u{tag} and y{tag} must have the same length, got {ub.shape[0]} and {yb.shape[0]}"
+                f"u{tag} and y{tag} must have the same length, got {ub.shape[0]} and {yb.shape[0]}{hint}"
             )
         out_u.append(ub)
         if out_y is not None:
@@ -262,6 +280,13 @@ def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *,
             raise TypeError(
                 f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(module).__name__}"
             )
+    for name, module in (("f", f), ("g", g)):
+        declared = getattr(module, "nx", None)
+        if isinstance(declared, int) and not isinstance(declared, bool) and declared != nx:
+            raise ValueError(
+                f"x0_mean has {nx} entries but {name} ({type(module).__name__}) declares nx={declared} "
+                f"states: x0_mean must hold one value per state ({declared})"
+            )
     x = torch.zeros(3, nx, dtype=dtype, device=device)
     u = torch.zeros(3, nu, dtype=dtype, device=device)
     checks = (
@@ -284,8 +309,28 @@ def check_module_shapes(f: nn.Module, g: nn.Module, nx: int, nu: int, p: int, *,
             raise ValueError(
                 f"{name}(x, u) must return shape (..., {want}) ({what}) for x of shape "
                 f"(..., {nx}) (nx = len(x0_mean)) and u of shape (..., {nu}); "
-                f"got {shape} for x of shape (3, {nx})"
+                f"got {shape} for x of shape (3, {nx}){_state_dimension_hint(name, out, nx, want)}"
             )
+
+
+def _state_dimension_hint(name: str, out, nx: int, want: int) -> str:
+    """What a wrong output shape of ``f`` or ``g`` says about ``x0_mean``: ``f`` returning another
+    number of states, or ``g`` returning one column per state entry (a module written for a
+    single state applied elementwise to a longer ``x``), both point at ``len(x0_mean)``."""
+    if not isinstance(out, Tensor) or out.dim() != 2 or out.shape[0] != 3:
+        return ""
+    m = int(out.shape[1])
+    if name == "f" and m != nx:
+        return (
+            f". f returns {m} state(s) for {nx}: if the model has {m} state(s), x0_mean has the wrong "
+            f"length ({nx} entries, needs {m})"
+        )
+    if name == "g" and m == nx and m != want:
+        return (
+            f". g returns one column per state entry: is x0_mean the right length ({nx} entries)? "
+            "f ran elementwise on it, so its length sets nx"
+        )
+    return ""
 
 
 # --------------------------------------------------------------------------------------------

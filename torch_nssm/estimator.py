@@ -240,8 +240,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         ``history_["rejected.f"]``/``["rejected.g"]``: the iterations whose M-step of that module
         was undone (a warning says so).  With ``n_init > 1``: the kept run's.
     outlier_weights_ : ndarray of shape (N,) or (N, p), or list of them for several records
-        ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier (NaN where ``y_k`` is
-        missing); per output for ``"student-t-per-output"``.
+        ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier, about 1 a regular
+        sample, above 1 a small residual (up to ``(dof + p) / dof``); NaN where ``y_k`` is
+        missing; per output for ``"student-t-per-output"``.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
     first_stage_ : FirstStageReport or None
@@ -541,10 +542,12 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             its particles at ``t - k`` are propagated ``k`` steps through ``f`` *with* process
             noise and ``g`` is averaged over them with the filter weights; for ``t < k`` the
             initial-state prior is propagated instead.  ``0`` gives the filtered outputs.
-        x0 : array-like of shape (nx,) or (n_records, nx), or "estimate", optional
+        x0 : array-like of shape (nx,) or (n_records, nx), (mean, cov), or "estimate", optional
             The first state of the record(s) (default: ``x0_mean_``, the *training* record's).
-            ``"estimate"``: from the record's first outputs (a smoothing pass over its first
-            ``INITIAL_SAMPLES`` samples from a broad prior; needs ``y``, also for the free run).
+            ``(mean, cov)``: what :meth:`initial_state` returns (the free run starts at ``mean``;
+            the filter's prior is ``N(mean, cov)``).  ``"estimate"``: from the record's first
+            outputs (a smoothing pass over its first ``INITIAL_SAMPLES`` samples from a broad
+            prior; needs ``y``, also for the free run).
         random_state : int, optional
             Seed of the particle filter for ``horizon`` (default: the estimator's).
 
@@ -590,7 +593,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             See :meth:`predict`.
         robust : bool, default=False
             Score with robust scales instead of variances (no ``sample_weight``).
-        x0 : array-like or "estimate", optional
+        x0 : array-like, (mean, cov) or "estimate", optional
             The first state of the record(s), as in :meth:`predict`.
         random_state : int, optional
             Seed for ``horizon``.
@@ -624,8 +627,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             Number of trajectories.
         random_state : int, RandomState or None
             Seed (default: the estimator's ``random_state``).
-        x0 : array-like of shape (nx,) or (n_records, nx), optional
-            Mean of the first state (default ``x0_mean_``); its spread stays ``x0_cov_``.
+        x0 : array-like of shape (nx,) or (n_records, nx), or (mean, cov), optional
+            Mean of the first state (default ``x0_mean_``); its spread stays ``x0_cov_``, or is
+            ``cov`` for the pair ``(mean, cov)`` that :meth:`initial_state` returns.
 
         Returns
         -------
@@ -653,9 +657,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             As in :meth:`fit`.
         return_particles : bool, default=False
             Keep the particles and smoothing weights in the result (weighted quantile bands).
-        x0 : array-like or "estimate", optional
-            Prior mean of the first state (default ``x0_mean_``, covariance ``x0_cov_``), as in
-            :meth:`predict`.
+        x0 : array-like, (mean, cov) or "estimate", optional
+            Prior mean of the first state (default ``x0_mean_``, covariance ``x0_cov_``), or the
+            pair ``(mean, cov)`` of :meth:`initial_state`, as in :meth:`predict`.
         random_state : int, optional
             Seed for this call; defaults to the estimator's ``random_state``.
 
@@ -712,7 +716,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         """The first state of a new record, estimated from its first outputs.
 
         A smoothing pass over the first ``INITIAL_SAMPLES`` samples from a broad prior (the fitted
-        prior's covariance times 100, plus ``Rw_``); what ``x0="estimate"`` uses.
+        prior's covariance times 100, plus ``Rw_``); what ``x0="estimate"`` uses.  The pair goes
+        back in as it is: ``predict(u, x0=est.initial_state(u, y))`` (also ``simulate``,
+        ``smooth``, ``filter``, ``score``, ``compare``).
 
         Returns
         -------

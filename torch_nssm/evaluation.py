@@ -94,9 +94,10 @@ def compare(estimator, u, y, *, horizon: int | None = None, x0=None, robust: boo
         ``None`` (default): the free-run simulation ``estimator.predict(u, x0=x0)``, MATLAB's
         ``compare(data, sys)``; ``k``: the ``k``-step-ahead predictions
         ``estimator.predict(u, y, horizon=k)``, MATLAB's ``compare(data, sys, k)``.
-    x0 : array-like or "estimate", optional
+    x0 : array-like, (mean, cov) or "estimate", optional
         The first state of the record(s), as in ``estimator.predict`` (default: the training
-        record's ``x0_mean_``; ``"estimate"``: from the record's first outputs).
+        record's ``x0_mean_``; ``(mean, cov)``: what ``estimator.initial_state(u, y)`` returns;
+        ``"estimate"``: from the record's first outputs).
     robust : bool, default=False
         Leave out of the fit the samples whose outlier weight ``E[lam_k | y]`` from
         ``estimator.smooth(u, y)`` on this record is below :data:`OUTLIER_WEIGHT_THRESHOLD` (0.5):

@@ -104,6 +104,26 @@ def _match_true_values(true_values, params: list[str], history) -> dict:
     return matched
 
 
+def _other_family_references(true_values, history) -> dict[str, str]:
+    """The plotted noise entries whose given value belongs to another noise family than the fit's,
+    with the words to label them: a Gaussian variance is not the true value of a Student-t scale
+    (nor the reverse).  The data's family is ``true_values["noise"]`` (a simulation's
+    ``data.params``); the fit is heavy-tailed when a shape parameter of its noise family (an entry
+    of the history beside ``f``, ``g``, ``Rw`` and ``Rv``, e.g. ``dof``) ends finite."""
+    noise = dict(true_values or {}).get("noise")
+    if not isinstance(noise, str):
+        return {}
+    shapes = [
+        k for k in history
+        if not k.startswith(("f.", "g.", "rejected.")) and k not in ("Rw", "Rv", "x0_cov", *_NOT_DRAWN)
+    ]
+    fit_heavy = any(bool(np.all(np.isfinite(np.asarray(history[k], dtype=float)[-1]))) for k in shapes)
+    data_heavy = noise != "gaussian"
+    if fit_heavy == data_heavy:
+        return {}
+    return {"Rv": "data's Gaussian variance" if noise == "gaussian" else f"data's {noise} scale"}
+
+
 def plot_history(est, params=None, true_values=None, ax=None):
     """Parameter estimates over the EM iterations (the paper's Figs. 2 and 10).
 
@@ -123,7 +143,10 @@ def plot_history(est, params=None, true_values=None, ax=None):
         ``f.``/``g.`` parameter has it, so a simulation's ``data.params`` can be passed as it is.
         Entries that name no plotted parameter (settings such as ``noise``, or parameters left
         out by ``params``) and non-finite values (``dof=inf`` of Gaussian noise) are skipped;
-        a qualified ``f.``/``g.`` name that is not in the history raises ``ValueError``.
+        a qualified ``f.``/``g.`` name that is not in the history raises ``ValueError``.  When
+        ``true_values["noise"]`` names another noise family than the fit's (Gaussian data, a
+        Student-t fit), ``Rv``'s value is not its true value (a variance is not a Student-t
+        scale): it is drawn dotted and labelled "data's Gaussian variance" instead of "true".
     ax : matplotlib Axes or sequence of Axes, optional
         ``None``: a new figure with one panel per parameter.  One Axes: every trajectory on it
         (with a legend).  A sequence of Axes: one per parameter.
@@ -144,13 +167,16 @@ def plot_history(est, params=None, true_values=None, ax=None):
         raise ValueError(f"params {unknown} not in the history; available: {sorted(history)}")
     if not params:
         raise ValueError("params is empty: nothing to plot")
+    other_family = _other_family_references(true_values, history)
     true_values = _match_true_values(true_values, params, history)
     single = ax is not None and not isinstance(ax, (Sequence, np.ndarray))
     if ax is None:
         plt = _pyplot()
         ncols = min(3, len(params))
         nrows = -(-len(params) // ncols)
-        fig, grid = plt.subplots(nrows, ncols, figsize=(4.0 * ncols, 2.8 * nrows), squeeze=False)
+        fig, grid = plt.subplots(
+            nrows, ncols, figsize=(4.0 * ncols, 2.8 * nrows), squeeze=False, layout="constrained"
+        )
         axes = grid.ravel()
         for extra in axes[len(params) :]:
             fig.delaxes(extra)
@@ -168,8 +194,10 @@ def plot_history(est, params=None, true_values=None, ax=None):
             if truth is not None:
                 t = np.asarray(truth, dtype=float)
                 t = t.reshape(()) if t.size == 1 else t[idx]
+                kind = other_family.get(name)
                 a.axhline(
-                    float(t), color=line.get_color(), linestyle="--", linewidth=1.0, label=f"{label} (true)"
+                    float(t), color=line.get_color(), linestyle=":" if kind else "--", linewidth=1.0,
+                    label=f"{label} ({kind or 'true'})",
                 )
         a.set_xlabel("iteration")
         if not single:
@@ -195,7 +223,10 @@ def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_
     intervals : dict, optional
         Intervals to draw instead, keyed like ``standard_errors_`` (e.g. ``est.bootstrap(u).intervals``).
     true_values : dict, optional
-        Drawn as crosses; keys as in :func:`plot_history` (``data.params`` works as it is).
+        Drawn as black crosses labelled "true"; keys as in :func:`plot_history` (``data.params``
+        works as it is).  A value of another noise family than the fit's (``Rv`` of Gaussian data
+        beside a Student-t fit's scale) is not a true value: a grey plus labelled "data's Gaussian
+        variance", with a legend.
     ax : sequence of Axes, optional
         One per parameter; a new figure if omitted.
 
@@ -220,12 +251,15 @@ def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_
         raise ValueError(f"params {unknown} have no interval; available: {available}")
     if not params:
         raise ValueError("params is empty: nothing to plot")
+    other_family = _other_family_references(true_values, est.history_)
     truth = _match_true_values(true_values, params, est.history_)
     if ax is None:
         plt = _pyplot()
         ncols = min(3, len(params))
         nrows = -(-len(params) // ncols)
-        fig, grid = plt.subplots(nrows, ncols, figsize=(3.5 * ncols, 2.8 * nrows), squeeze=False)
+        fig, grid = plt.subplots(
+            nrows, ncols, figsize=(3.5 * ncols, 2.8 * nrows), squeeze=False, layout="constrained"
+        )
         axes = grid.ravel()
         for extra in axes[len(params) :]:
             fig.delaxes(extra)
@@ -246,7 +280,11 @@ def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_
         if name in truth:
             t = truth[name]
             t = t.reshape(value.shape) if t.size == value.size else np.broadcast_to(t, value.shape)
-            a.plot(x, [t[i] for i in entries], "x", color="black", label="true")
+            if name in other_family:
+                a.plot(x, [t[i] for i in entries], "+", color="0.5", label=other_family[name])
+                a.legend(fontsize="x-small")
+            else:
+                a.plot(x, [t[i] for i in entries], "x", color="black", label="true")
         a.set_xticks(x)
         labels = [name if not i else f"[{', '.join(map(str, i))}]" for i in entries]
         a.set_xticklabels(labels, fontsize="small")
@@ -257,8 +295,10 @@ def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_
 def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYlGn", t=None):
     """The outputs over time, coloured by their outlier weight ``E[lam_k | y]``.
 
-    A weight near 0 (red with the default colormap) flags an outlier, near 1 (green) a regular
-    sample; weights above 1 are drawn as 1, missing ones (NaN) in grey.
+    A weight below 0.5 (red with the default colormap) flags an outlier, above it (green) a regular
+    sample.  A regular sample's weight is about 1 and exceeds 1 when its residual is small (up to
+    ``(dof + p) / dof`` for a sample on its prediction, e.g. 2 at ``dof = 1``): the colour bar
+    runs from 0 to the largest weight (at least 1), yellow at 0.5.  Missing weights (NaN) are grey.
 
     Parameters
     ----------
@@ -292,13 +332,15 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
         raise ValueError(f"t must have {n} entries, got {t.shape[0]}")
     if ax is None:
         _, ax = _pyplot().subplots(figsize=(8.0, 3.0))
+    from matplotlib.colors import TwoSlopeNorm
+
+    ok = np.isfinite(w)
+    top = max(1.0, float(w[ok].max())) if ok.any() else 1.0
+    norm = TwoSlopeNorm(vmin=0.0, vcenter=0.5, vmax=top)  # 0.5: the flagging threshold
     scatter = None
     for j in range(y.shape[1]):
         ax.plot(t, y[:, j], color="0.8", linewidth=0.8, zorder=1)
-        ok = np.isfinite(w)
-        scatter = ax.scatter(
-            t[ok], y[ok, j], c=np.clip(w[ok], 0.0, 1.0), cmap=cmap, vmin=0.0, vmax=1.0, s=14, zorder=2
-        )
+        scatter = ax.scatter(t[ok], y[ok, j], c=w[ok], cmap=cmap, norm=norm, s=14, zorder=2)
         if (~ok).any():
             ax.scatter(t[~ok], y[~ok, j], color="0.6", s=10, zorder=2)
     if true_outliers is not None:

@@ -23,6 +23,9 @@ def test_fast_experiment_writes_files(name, tmp_path):
     assert (tmp_path / f"{name}_settings.json").exists()
     assert res["settings"]["fast"] is True
     assert "|" in res["table"]
+    for table in tmp_path.glob("*.md"):  # what is missing is said in words
+        words = table.read_text().replace("|", " ").split()
+        assert not {"nan", "None"} & set(words), table.name
 
 
 def test_reproduce_restores_the_callers_thread_count(tmp_path, monkeypatch):

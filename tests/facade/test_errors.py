@@ -86,7 +86,7 @@ BAD_PARAMS = [
     # (estimator arguments, exception, message naming the argument)
     (dict(x0_mean=None), ValueError, r"x0_mean is required"),
     (dict(x0_mean=[np.nan]), ValueError, r"x0_mean must be finite"),
-    (dict(x0_mean=[0.0, 0.0]), ValueError, r"must return .* \(nx = len\(x0_mean\)\)"),
+    (dict(x0_mean=[0.0, 0.0]), ValueError, r"x0_mean has 2 entries but f \(PaperTransition\) declares nx=1"),
     (dict(f=WrongShape()), ValueError, r"f\(x, u\) must return shape \(\.\.\., 1\) \(the state"),
     (dict(g=WrongShape()), ValueError, r"g\(x, u\) must return shape \(\.\.\., 1\) \(the number"),
     (dict(g=Broken()), ValueError, r"g\(x, u\) failed .*RuntimeError: boom"),
@@ -134,6 +134,59 @@ def test_bad_parameters(no_work, kw, exc, match):
         make(**kw).fit(U, Y)
 
 
+class ScalarTransition(nn.Module):
+    """``a x + b u`` for one state, written without declaring ``nx``: elementwise on a longer ``x``."""
+
+    def forward(self, x, u):
+        return 0.9 * x + u
+
+
+class CosObservation(nn.Module):
+    """``cos(x)``, elementwise: one column per state entry."""
+
+    def forward(self, x, u):
+        return torch.cos(x)
+
+
+class FirstState(nn.Module):
+    """A one-state transition that reads ``x[..., :1]``: it returns one state whatever ``x`` is."""
+
+    def forward(self, x, u):
+        return 0.9 * x[..., :1] + u
+
+
+WRONG_X0_MEAN = [
+    # (f, g, message): the error names x0_mean, not g, when x0_mean has the wrong length
+    (PaperTransition(0.5, 0.5), PaperObservation(0.5), r"x0_mean has 2 entries but f \(PaperTransition\) "
+     r"declares nx=1"),
+    (ScalarTransition(), CosObservation(), r"g returns one column per state entry: is x0_mean the right "
+     r"length \(2 entries\)"),
+    (FirstState(), CosObservation(), r"f returns 1 state\(s\) for 2: .* x0_mean has the wrong length "
+     r"\(2 entries, needs 1\)"),
+]
+
+
+@pytest.mark.parametrize("f, g, match", WRONG_X0_MEAN)
+def test_x0_mean_of_the_wrong_length_is_named(no_work, f, g, match):
+    with pytest.raises(ValueError, match=match):
+        make(f=f, g=g, x0_mean=[0.0, 0.0]).fit(U, Y)
+
+
+TRANSPOSED = [
+    # (u, y, message): a (1, N) record says it looks transposed
+    (U.reshape(1, N), Y.reshape(1, N), r"y must have at least 2 samples, got 1 sample\(s\); y has shape "
+     r"\(1, 40\).*transposed\? Pass y.T \(shape \(40, 1\)\) or a 1-D array of 40 samples"),
+    (U, Y.reshape(1, N), r"y has shape \(1, 40\).*transposed"),
+    (U.reshape(1, N), Y, r"u and y must have the same length, got 1 and 40; u has shape \(1, 40\).*Pass u.T"),
+]
+
+
+@pytest.mark.parametrize("u, y, match", TRANSPOSED)
+def test_a_transposed_record_is_named(no_work, u, y, match):
+    with pytest.raises(ValueError, match=match):
+        make().fit(u, y)
+
+
 def test_output_count_mismatch_names_g(no_work):
     with pytest.raises(ValueError, match=r"g\(x, u\) must return shape \(\.\.\., 2\)"):
         make().fit(U, np.stack([Y, Y], 1))
@@ -147,6 +200,7 @@ def fitted():
 BAD_AFTER_FIT = [
     ("predict", (np.zeros((N, 2)),), {}, ValueError, r"u has 2 input columns, expected 1"),
     ("predict", (None,), {}, ValueError, r"u is required"),
+    ("predict", (U.reshape(1, N),), {}, ValueError, r"u has 40 input columns, expected 1.*Pass u.T"),
     ("score", (U, np.stack([Y, Y], 1)), {}, ValueError, r"y has 2 output columns, expected 1"),
     ("score", (U, Y), dict(sample_weight=np.ones(3)), ValueError, r"sample_weight must have 40"),
     ("smooth", (U[:-2], Y), {}, ValueError, r"u and y must have the same length"),

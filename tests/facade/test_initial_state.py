@@ -84,3 +84,36 @@ def test_bad_initial_states_are_refused(fitted, x0, message):
     u, _, _ = _record(x0=0.0, n=20)
     with pytest.raises(ValueError, match=message):
         fitted.predict(u, x0=x0)
+
+
+def test_initial_state_goes_back_in_as_x0(fitted):
+    """``x0=est.initial_state(u, y)``: the pair ``(mean, cov)`` is accepted by predict, score,
+    simulate, smooth, filter and compare; the free run starts at ``mean``, the prior's spread is
+    ``cov``."""
+    u, y, _ = _record(x0=2.5)
+    pair = fitted.initial_state(u, y)
+    mean, cov = pair
+    np.testing.assert_array_equal(fitted.predict(u, x0=pair), fitted.predict(u, x0=mean))
+    assert fitted.score(u, y, x0=pair) == fitted.score(u, y, x0=mean)
+    np.testing.assert_array_equal(fitted.compare(u, y, x0=pair).fit, fitted.compare(u, y, x0=mean).fit)
+    # the prior's spread is cov: the simulated first states scatter by sqrt(cov), not sqrt(x0_cov_)
+    tight = (mean, np.array([[1e-10]]))
+    states, _ = fitted.simulate(u, n_samples=200, random_state=0, x0=tight)
+    assert states[:, 0, 0].std() < 1e-4 < np.sqrt(fitted.x0_cov_[0, 0])
+    np.testing.assert_allclose(states[:, 0, 0], mean[0], atol=1e-4)
+    sm = fitted.smooth(u, y, x0=tight)
+    assert abs(sm.mean[0, 0] - mean[0]) < 1e-3  # a prior that tight pins the first state
+    assert fitted.filter(u, y, x0=pair).mean.shape == (150, 1)
+    # several records: means (B, nx) and covariances (B, nx, nx)
+    pairs = fitted.initial_state([u, u[:80]], [y, y[:80]])
+    assert pairs[0].shape == (2, 1) and pairs[1].shape == (2, 1, 1)
+    both = fitted.predict([u, u[:80]], x0=pairs)
+    np.testing.assert_allclose(np.ravel(both[0]), np.ravel(fitted.predict(u, x0=pairs[0][0])))
+
+
+def test_a_bad_covariance_in_the_x0_pair_is_named(fitted):
+    u, _, _ = _record(x0=0.0, n=20)
+    with pytest.raises(ValueError, match=r"x0 = \(mean, cov\): cov must have shape \(1, 1\)"):
+        fitted.predict(u, x0=(np.array([0.0]), np.eye(2)))
+    with pytest.raises(ValueError, match="x0's covariance must be positive definite"):
+        fitted.predict(u, x0=(np.array([0.0]), np.array([[-1.0]])))

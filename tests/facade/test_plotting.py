@@ -76,7 +76,8 @@ def test_plot_history_takes_a_simulation_params_dict(fit):
     assert {"a", "b", "c", "noise", "x0_mean", "outlier_range"} <= set(data.params)
     axes = plot_history(est, true_values=data.params)
     truths = {a.get_title(): _truth_lines(a) for a in axes}
-    assert truths == {"f.a": [0.9], "f.b": [1.0], "g.c": [1.0], "Rw": [0.1], "Rv": [0.1], "dof": []}
+    # Rv: the data's Gaussian variance is not the Student-t scale's true value (drawn, not as "true")
+    assert truths == {"f.a": [0.9], "f.b": [1.0], "g.c": [1.0], "Rw": [0.1], "Rv": [], "dof": []}
     # a parameter left out of params is skipped, and a qualified name wins over a plain one
     axes = plot_history(est, params=["f.a"], true_values={"g.c": 1.0, "a": 0.5, "f.a": 0.9})
     assert _truth_lines(axes[0]) == [0.9]
@@ -116,7 +117,7 @@ def test_plot_outliers_colours_by_weight(fit):
     out = plot_outliers(data.y, est.outlier_weights_, true_outliers=data.outlier_mask, ax=ax)
     assert out is ax
     points, circles = [c for c in ax.collections if isinstance(c, PathCollection)]
-    np.testing.assert_allclose(points.get_array(), np.clip(est.outlier_weights_, 0, 1))
+    np.testing.assert_allclose(points.get_array(), est.outlier_weights_)  # not clipped at 1
     np.testing.assert_allclose(points.get_offsets()[:, 1], data.y[:, 0])
     assert len(circles.get_offsets()) == data.outlier_mask.sum()
     assert len(fig.axes) == 2  # with a colour bar
@@ -125,6 +126,76 @@ def test_plot_outliers_colours_by_weight(fit):
     colours = points.to_rgba(points.get_array())
     low = np.argmin(est.outlier_weights_)
     np.testing.assert_allclose(colours[low], cmap(float(np.clip(est.outlier_weights_[low], 0, 1))))
+
+
+def test_plot_outliers_colour_bar_spans_the_weights(fit):
+    """A regular sample's weight ``E[lam | y] = (dof + p) / (dof + delta^2)`` exceeds 1 for a small
+    residual: the colour bar runs to the largest weight (not 1), its middle colour at the 0.5 that
+    flags an outlier."""
+    est, data, _ = fit
+    w = est.outlier_weights_
+    assert w.max() > 1.0  # the weights this test is about
+    assert w.max() <= (est.dof_ + 1) / est.dof_ + 1e-12  # the bound the docstring states
+    fig, ax = plt.subplots()
+    points = plot_outliers(data.y, w, ax=ax).collections[0]
+    assert points.norm.vmin == 0.0 and points.norm.vmax == pytest.approx(w.max())
+    assert points.norm(0.5) == pytest.approx(0.5)
+    colorbar = fig.axes[1]
+    assert colorbar.get_ylim() == pytest.approx((0.0, w.max()))  # the bar shows every weight
+    # weights at most 1 keep the bar at 1
+    assert plot_outliers(data.y, np.clip(w, 0, 0.9)).collections[0].norm.vmax == 1.0
+
+
+def test_plot_history_titles_clear_the_row_above(fit):
+    """The bottom row's titles (Rw, Rv, dof) do not sit under the top row's x labels and ticks."""
+    est, _, _ = fit
+    axes = plot_history(est)
+    fig = axes[0].figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for above, below in zip(axes[:3], axes[3:]):
+        title = below.title.get_window_extent(renderer)
+        assert below.get_title()
+        for artist in (above.xaxis.label, *above.get_xticklabels()):
+            box = artist.get_window_extent(renderer)
+            assert title.y1 < box.y0 or not box.width, (below.get_title(), title, box)
+
+
+def test_plot_parameters_titles_clear_the_row_above(fit):
+    from torch_nssm.plotting import plot_parameters
+
+    est, _, _ = fit
+    axes = plot_parameters(est)
+    fig = axes[0].figure
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for above, below in zip(axes[:3], axes[3:]):
+        title = below.title.get_window_extent(renderer)
+        for artist in above.get_xticklabels():
+            assert title.y1 < artist.get_window_extent(renderer).y0
+
+
+def test_a_gaussian_variance_is_not_marked_as_a_student_t_scales_truth(fit):
+    """Gaussian data (``data.params["noise"] == "gaussian"``) beside a Student-t fit: ``Rv`` of the
+    data is a variance, the fit's a scale; it is drawn and labelled as the data's variance, not
+    as the true value.  The model's own parameters keep their "true" marks."""
+    from torch_nssm.plotting import plot_parameters
+
+    est, data, _ = fit
+    assert data.params["noise"] == "gaussian" and np.isfinite(est.dof_)
+    axes = dict(zip(["f.a", "f.b", "g.c", "Rw", "Rv", "dof"], plot_parameters(est, true_values=data.params)))
+    marks = lambda a: [ln.get_label() for ln in a.get_lines() if not ln.get_label().startswith("_")]  # noqa: E731
+    labels = {k: marks(a) for k, a in axes.items()}
+    assert labels["f.a"] == ["true"] and labels["Rw"] == ["true"]
+    assert labels["Rv"] == ["data's Gaussian variance"]
+    assert axes["Rv"].get_legend() is not None
+    history_axes = plot_history(est, true_values=data.params)
+    rv = [ln for ln in history_axes[4].get_lines() if ln.get_label().startswith("Rv (")]
+    assert [ln.get_label() for ln in rv] == ["Rv (data's Gaussian variance)"]
+    assert rv[0].get_linestyle() == ":"
+    # Student-t data with a Student-t fit: the scale is the true value
+    params = dict(data.params, noise="student-t")
+    assert marks(plot_parameters(est, true_values=params)[4]) == ["true"]
 
 
 def test_plot_outliers_missing_and_errors():

@@ -20,8 +20,8 @@ class StateEstimate:
     cov : ndarray, shape (N, nx, nx)
         Posterior state covariances.
     outlier_weights : ndarray, shape (N,)
-        ``E[lam_k | y]``: near 1 for a regular sample, near 0 for an outlier (NaN where ``y_k`` is
-        missing).
+        ``E[lam_k | y]``: near 0 for an outlier (below 0.5 flags it), about 1 for a regular sample
+        and above 1 for a small residual (up to ``(dof + p) / dof``); NaN where ``y_k`` is missing.
     log_likelihood : float
         Particle estimate of ``log p(y)`` at the parameters used.
     particles : ndarray, shape (N, L, nx), optional

@@ -222,8 +222,9 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
     note = (
         f"N = {s['n_samples']}, {s['n_iter']} EM iterations (paper: 200), {s['n_particles']}"
         f"{'->' + str(s['n_particles_final']) if s['n_particles_final'] else ''} particles "
-        f"({s['smoother'].upper()}), last {s['average_last']} iterates averaged, "
-        "init theta1 = theta2 = 0.8, Rw_init = the generator's Rw, Rv_init = 1e-3 I, "
+        f"({s['smoother'].upper()}), "
+        + (f"last {s['average_last']} iterates averaged, " if s["average_last"] else "the last iterate, ")
+        + "init theta1 = theta2 = 0.8, Rw_init = the generator's Rw, Rv_init = 1e-3 I, "
         f"seed {seed}, {total:.0f} s. "
         "error = |theta_hat - 1| / 1 * 100%. 'iterations to 1%' = first iteration after which the "
         "estimate stays within 1% of the truth (theta1 / theta2; the last iteration + 1 if never). "
@@ -231,6 +232,7 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
         "filter with the true noise covariances and the outliers known and left out (an oracle: what "
         "the data allow), ± its standard error. 's.e. (ours)' = the observed-information standard errors "
         "of our fit (Louis' identity from the particle smoother, docs/uncertainty.md)."
+        + _standard_error_note(standard_errors, s["n_iter"])
     )
     table = _write_table(out, "table2", TABLE2_HEADER, rows, note)
     files = _manipulator_figures(out, fits, datas, levels)
@@ -268,8 +270,29 @@ def _table2_row(frac: float, est, secs: float, err: tuple, se: tuple, oracle: di
         f"{o2:.4f} ± {se2:.4f}",
         f"{it1} / {it2}",
         f"{secs:.1f}",
-        f"{se[0]:.4f} / {se[1]:.4f}",
+        " / ".join(_standard_error_text(v) for v in se),
     ]
+
+
+def _standard_error_text(value: float) -> str:
+    """A standard error for the table: ``"none"`` where the observed information gives none (NaN:
+    not positive definite along a direction that involves the parameter)."""
+    return f"{value:.4f}" if np.isfinite(value) else "none"
+
+
+def _standard_error_note(standard_errors: dict, n_iter: int) -> str:
+    """Why a row of Table 2 has no standard error (``""`` if every row has them)."""
+    missing = [f"{frac:.0%}" for frac, se in standard_errors.items() if not np.all(np.isfinite(se))]
+    if not missing:
+        return ""
+    return (
+        f" 'none' (at {', '.join(missing)} outliers): no standard error, because the observed information "
+        "at that fit is not positive definite along a direction that involves the parameter (16 free "
+        f"parameters: theta1, theta2, the 4x4 Rw, Rv and dof); the fit stops after {n_iter} EM "
+        "iterations, short of the maximum (see the error column), where the information need not be "
+        "positive definite, and Monte Carlo error adds to it. More EM iterations, or more particles for "
+        "the final E-step (n_particles_final), give them (docs/uncertainty.md)."
+    )
 
 
 #: Columns of Table 2.
