@@ -2,7 +2,7 @@
 
 The engine works on millions of rows with 1-4 components each.  A reduction or matrix product
 over such a tiny last dimension is dominated by per-element overhead in PyTorch's CPU kernels
-(``(Phi * theta).sum(-1)`` with two terms was measured 6x slower than two multiply-adds); these
+(``(Phi * theta).sum(-1)`` with two terms is 6x slower than two multiply-adds); these
 helpers spell the small dimension out instead.
 """
 
@@ -22,7 +22,7 @@ __all__ = [
 
 #: Rows (time steps x sequences x particles) per block of the whole-record passes that follow the
 #: filter and smoother (latent scales, M-step sums): each block's temporaries stay in cache, where
-#: streaming whole ``(T, B, L)`` arrays through memory once per operation was measured 2-5x
+#: streaming whole ``(T, B, L)`` arrays through memory once per operation is 2-5x
 #: slower on a 2-core CPU.
 BLOCK_ROWS = 1 << 17
 

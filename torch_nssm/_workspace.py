@@ -3,7 +3,7 @@
 Each EM iteration writes about a dozen fresh ``(T, B, L)`` arrays (particles, weights, ancestors,
 smoothing statistics, latent scales).  Large CPU allocations come straight from the operating
 system, so every iteration pays first-touch page faults on all of them: measured at the Table 1
-size (B = 100, N = 1000, L = 100, one thread, 2026-11-24) about a third of an EM iteration's CPU
+size (B = 100, N = 1000, L = 100, one thread) about a third of an EM iteration's CPU
 time, the same whether torch asks for transparent huge pages or not.  The EM loop hands the
 previous E-step's output to the next E-step when nothing reads it any more
 (:func:`torch_nssm.estimation.estep.e_step`'s ``recycle``); the allocation sites below take their
@@ -88,8 +88,8 @@ def tune_allocator() -> None:
     threshold is free there; the threshold follows the largest block freed so far (a few MB in an
     E-step), so every block of time steps of the filter's and the smoothers' passes frees its
     temporaries, the heap is trimmed, and the next block faults the same memory in again, page by
-    page.  Measured at the Table 1 size (B = 100, N = 1000, L = 100, MCMC smoother, one thread,
-    2026-11-25): ~220,000 page faults per backward pass, and 1.47-1.55 against 1.13-1.26 CPU s
+    page.  Measured at the Table 1 size (B = 100, N = 1000, L = 100, MCMC smoother, one thread):
+    ~220,000 page faults per backward pass, and 1.47-1.55 against 1.13-1.26 CPU s
     per EM iteration with the thresholds set.  This sets the mmap threshold to 32 MiB and the trim
     threshold to 64 MiB (where the dynamic ones end for large blocks): at most 64 MiB of freed
     memory stays with the process.  Nothing is changed when any ``MALLOC_*`` environment variable

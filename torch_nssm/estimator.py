@@ -75,7 +75,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     Rv_init : array-like, optional
         Initial measurement-noise scale matrix.  If omitted: for a simulation model the robust
         spread of the first stage's output errors, else ``0.02 * diag(s^2)``, ``s`` a robust
-        spread (1.4826 MAD) of each output (docs/design.md, "Estimator settings").
+        spread (1.4826 MAD) of each output (docs/design.md, "How a fit starts").
     dof_init : float, default=5.0
         Initial degrees of freedom of the Student-t noise (one per output, or one for all, for
         ``"student-t-per-output"``): a shortcut for the family's option, see ``noise``.

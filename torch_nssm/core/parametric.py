@@ -255,7 +255,7 @@ class ResidualMoments:
     #: this factor: their rounding errors (~1e-16 each in double precision) then reach ~1e-12 of
     #: it.  Scaled by the machine epsilon of other dtypes: in single precision (~6e-8 each) no
     #: cancellation is small enough, and the residuals' pass is always taken (a float32 model's
-    #: scatter was 1.7e-4 off at a cancellation of ~10, where the residuals give ~1e-6).
+    #: scatter is 1.7e-4 off at a cancellation of ~10, where the residuals give ~1e-6).
     MAX_CANCELLATION = 1e4
 
     def scatter_at(self, theta: Tensor) -> tuple[Tensor, Tensor]:
@@ -276,7 +276,7 @@ class ResidualMoments:
 #: the sums over the particles as one dot product per pair of features (F (F + 3) / 2 passes over
 #: the rows) instead of batched ``(F, L) @ (L, F)`` products per (step, sequence), whose broadcast
 #: weighting and tiny matrix products cost more: the closed form of the paper's f (F = 2) 69 -> 48 ms
-#: at the Table 1 size, a three-feature module on 3e6 rows 43 -> 35 ms (2026-11-25, one thread).
+#: at the Table 1 size, a three-feature module on 3e6 rows 43 -> 35 ms (one thread).
 FEW_FEATURES = 3
 
 

@@ -9,13 +9,13 @@ for a quadratic ``Q`` is ``I_c^{-1}`` times the score), the Newton step on the l
     theta_new = theta + I^{-1} I_c d
 
 for the free parameters of ``f`` and ``g`` together, given the noise parameters.  (Newton steps
-for the noise parameters too, block by block, were tried on the manipulator and made the fit
-unstable: their information is noisier and often not positive definite far from the maximum.)
+for the noise parameters too, block by block, make the manipulator's fit unstable: their
+information is noisier and often not positive definite far from the maximum.)
 The noise parameters jump along their own EM path by squared extrapolation
 (:class:`NoiseExtrapolation`), which needs no information: the measurement noise's from the start,
-the process noise's once the Newton steps end.  (Jumping ``Rw`` while the Newton steps run moved
-the maximum over ``f`` and ``g`` under those steps; docs/design.md, "Accelerated EM", has the
-variants measured on six manipulator records.)
+the process noise's once the Newton steps end.  (Jumping ``Rw`` while the Newton steps run moves
+the maximum over ``f`` and ``g`` under those steps; benchmarks/HISTORY.md, "Accelerated EM", has
+the variants measured on six manipulator records.)
 
 The EM loop sees the acceleration through :class:`Acceleration`'s hooks (before and after the
 M-step, after the E-step); :class:`NewtonAcceleration` is ``acceleration="newton"``.

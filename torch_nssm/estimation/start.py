@@ -156,7 +156,7 @@ class Start:
         randomness from ``seeds[r]``."""
         seed = self.seeds[r]
         rs = np.random.RandomState(seed)
-        if r == 0:  # the particle seed of a single fit, as before restarts existed
+        if r == 0:  # the particle seed a single fit (n_init=1) uses
             return copy_model(self.model), torch.Generator(device=device).manual_seed(seed), True
         generator = seeded_generator(device, rs)
         model, stable = stable_jitter(self.model, self.init_jitter, rs, data, self.limit)

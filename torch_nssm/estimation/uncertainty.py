@@ -521,7 +521,7 @@ _PIECE_CORE = 64
 #: drawn in rounds for the indices left, each round a dozen small operations), so more particles pay
 #: for more tries.  The exact draw builds one table per distinct (row, next particle) pair, shared by
 #: the indices left there, so it pays off early: 1/50 and 6 (6 / 10 / 20 tries at L = 200 / 500 /
-#: 1000) took 4-12 % off the information against 1/20 and 8 (2026-11-25, CPU time, both test models);
+#: 1000) take 4-12 % off the information against 1/20 and 8 (CPU time, both test models);
 #: 4 rather than 6 at L = 200 (all tries in the first round, no further round: a round's dozen
 #: operations a step cost more than the exact draws they save) another 4-8 % (200 trajectories).
 _TRIES_PER_PARTICLE = 1 / 50

@@ -112,7 +112,7 @@ def _process_noise(
         noise = noise.transpose(0, 1)
     else:
         noise = torch.randn(out.shape, dtype=noise_dtype, device=out.device, generator=generator)
-    if nx == 1:  # widened (a product with a float32 (strided) operand was 4x slower: 39 vs 11 ms at
+    if nx == 1:  # widened (a product with a float32 (strided) operand is 4x slower: 39 vs 11 ms at
         out.copy_(noise)  # T = 1000, B = L = 100, one CPU thread)
         return Cw.reshape(B)
     torch.sum(noise.to(out.dtype).unsqueeze(-2) * Cw.unsqueeze(-3), dim=-1, out=out)  # noise @ Cw^T

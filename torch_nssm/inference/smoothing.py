@@ -264,7 +264,7 @@ def _backward_kernels(
     ones_f = torch.ones_like(a).unsqueeze(-2)
     ones_x = torch.ones_like(bound).unsqueeze(-1)
     left = torch.cat([zx * _LOG2E, -_LOG2E * bound.unsqueeze(-1), ones_x], -1).to(kdtype)  # (..., J, nx+2)
-    # (..., nx+2, L), built in this layout: a product with a transposed view was 3.5x slower
+    # (..., nx+2, L), built in this layout: a product with a transposed view is 3.5x slower
     right = torch.cat([zf.mT, ones_f, _LOG2E * a.unsqueeze(-2)], -2).to(kdtype)
     left, right = left.reshape(-1, *left.shape[-2:]), right.reshape(-1, *right.shape[-2:])
     out = None
