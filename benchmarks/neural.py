@@ -230,12 +230,20 @@ def silverbox(
     max_seconds: float | None,
     max_iter: int | None = None,
     losses=("cauchy", "squared"),
+    linear_part: bool = False,
 ) -> dict[str, Any]:
     from silverbox import arrow_rmse_mv, prepare_silverbox
 
-    from torch_nssm.blocks.linear import LinearObservation
+    from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+    from torch_nssm.neural import GreyBoxTransition
 
-    results: dict[str, Any] = {"n_train": n_train, "hidden": hidden, "nx": nx, "rows": []}
+    results: dict[str, Any] = {
+        "n_train": n_train,
+        "hidden": hidden,
+        "nx": nx,
+        "linear_part": linear_part,
+        "rows": [],
+    }
     for fraction in outliers:
         data = prepare_silverbox(n_train=n_train, outlier_fraction=fraction, random_state=0)
         u, y = data.u_train, data.y_train
@@ -249,7 +257,10 @@ def silverbox(
             return {"full_mv": s["full"], "no_extrapolation_mv": s["no_extrapolation"]}
 
         for loss in losses:
-            f = MLPTransition(nx, 1, hidden=(hidden,), random_state=0)
+            if linear_part:  # x+ = A x + B u + c + MLP(x, u): a linear state-space model plus a network
+                f = GreyBoxTransition(LinearTransition(nx, 1), nx, 1, hidden=(hidden,), random_state=0)
+            else:  # x+ = x + MLP(x, u)
+                f = MLPTransition(nx, 1, hidden=(hidden,), random_state=0)
             g = LinearObservation(nx, 1, 1, feedthrough=True)  # y = C x + D u + d: a direct input term
             est = RobustNSSMEstimator(
                 f,
@@ -405,6 +416,7 @@ def main(argv=None) -> None:
     parser.add_argument("--max-seconds", type=float, default=None)
     parser.add_argument("--max-iter", type=int, default=None, help="silverbox: LBFGS iterations per phase")
     parser.add_argument("--losses", default="cauchy,squared", help="silverbox: the training losses")
+    parser.add_argument("--linear-part", action="store_true", help="silverbox: f = linear model + network")
     parser.add_argument("--plants", default="pendulum,tanks,oscillator,wiener_hammerstein,bouc_wen,axis")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)

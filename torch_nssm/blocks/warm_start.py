@@ -518,11 +518,13 @@ def simulation_warm_start(
     -------
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with the trained ``f`` and ``g``, ``x0_mean`` at the fitted
-        first state (the mean over the records), ``Rw_init`` and ``Rv_init`` from the trained
-        simulation (:func:`~torch_nssm.estimation.neural_first_stage.start_noise_levels`) unless the
-        estimator sets them, and ``first_stage=None`` (the start is done).  If the training did not
-        improve the free run (``report.accepted`` is False) the modules are the given ones and a
-        warning says so.
+        first state (the mean over the records), ``Rv_init`` from the trained simulation's output
+        errors unless the estimator sets it, and ``first_stage=None`` (the start is done).  With
+        ``fit_Rw="auto"`` (the default) the network is a simulation model and EM holds its process
+        noise small: ``fit_Rw=False`` and ``Rw_init`` 1e-6 times the variance of each simulated
+        state (:func:`~torch_nssm.estimation.neural_first_stage.start_noise_levels`) unless given;
+        ``fit_Rw=True`` lets EM estimate it.  If the training did not improve the free run
+        (``report.accepted`` is False) the modules are the given ones and a warning says so.
     NeuralFirstStageReport
         Only with ``return_report=True``.
 
@@ -556,10 +558,12 @@ def simulation_warm_start(
     if report.accepted:
         Rw, Rv = start_noise_levels(model, data, report.first_states)
         params["x0_mean"] = report.first_states.mean(0).cpu().numpy()
-        if estimator.Rw_init is None:
-            params["Rw_init"] = Rw.cpu().numpy()
         if estimator.Rv_init is None:
             params["Rv_init"] = Rv.cpu().numpy()
+        if estimator.fit_Rw == "auto":  # a simulation model: EM holds its process noise small
+            params["fit_Rw"] = False
+            if estimator.Rw_init is None:
+                params["Rw_init"] = Rw.cpu().numpy()
     else:
         warnings.warn(
             f"the simulation-error training did not improve the free run of the record (trimmed RMS of "

@@ -41,7 +41,7 @@ from torch import Tensor, nn
 
 from .._stats import MAD_TO_STD
 from ..core.model import SequenceBatch, StateSpaceModel
-from .first_stage import NETWORK_LAYERS
+from .first_stage import NETWORK_LAYERS, held_process_noise
 
 __all__ = [
     "NeuralFirstStageOptions",
@@ -880,18 +880,17 @@ def fit_initial_states(model: StateSpaceModel, data: SequenceBatch, n_samples: i
 
 @torch.no_grad()
 def start_noise_levels(
-    model: StateSpaceModel, data: SequenceBatch, first_states: Tensor
+    model: StateSpaceModel, data: SequenceBatch, first_states: Tensor, relative: float = 1e-6
 ) -> tuple[Tensor, Tensor]:
-    """Initial values of ``Rw`` and ``Rv`` for EM after a simulation-error fit: ``Rw`` 1e-3 times the
-    variance of each state along the noise-free simulation of the records from ``first_states``
-    (diagonal: a small process noise that EM may grow), ``Rv`` the squared robust scale (1.4826 MAD)
-    of that simulation's output errors per output (diagonal), floored at 1e-12 times ``y``'s
-    variance."""
+    """Noise levels for EM after a simulation-error fit: ``Rw`` ``relative`` times the variance of
+    each state along the noise-free simulation of the records from ``first_states`` (diagonal,
+    floored at ``relative`` times the largest: :func:`~torch_nssm.estimation.first_stage.
+    held_process_noise`, the held process noise of a simulation model), and ``Rv`` the squared
+    robust scale (1.4826 MAD) of that simulation's output errors per output (diagonal, floored at
+    1e-12 times ``y``'s squared spread)."""
     problem = _Problem(model, data, NeuralFirstStageOptions(validation_fraction=0.0))
     states = _simulate_states(model.f, first_states.to(problem.y), problem.u.transpose(0, 1))  # (B, T, nx)
-    rows = torch.cat([states[b, : int(n)] for b, n in enumerate(problem.lengths.tolist())])
-    var = rows.var(0) if rows.shape[0] > 1 else torch.ones_like(rows[0])
-    var = torch.where(torch.isfinite(var) & (var > 0), var, torch.ones_like(var))
+    Rw = held_process_noise(states.transpose(0, 1), problem.data, relative)
     errors = problem.record_errors(model.f, model.g, first_states.to(problem.y)) * problem.y_scale
     flat = errors.reshape(-1, problem.p)
     rv = torch.stack(
@@ -903,4 +902,4 @@ def start_noise_levels(
         ]
     )
     rv = torch.clamp(torch.nan_to_num(rv, nan=1.0), min=1e-12 * float((problem.y_scale**2).max()))
-    return torch.diag(1e-3 * var), torch.diag(rv)
+    return Rw, torch.diag(rv)
