@@ -103,7 +103,7 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
         peak = (torch.cuda.max_memory_allocated() - base_gpu) / 2**20 if cuda else _rss_mb() - base
         m = model()
         t0 = time.perf_counter()
-        new = m_step([m], batch, est, MStepOptions(fit_dof=False)).models[0]
+        new = m_step([m], batch, est, MStepOptions(fit_shape=False)).models[0]
         sync()
         t_m = time.perf_counter() - t0
         theta = [float(new.f.a.detach()), float(new.f.b.detach()), float(new.g.c.detach())]

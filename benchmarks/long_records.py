@@ -105,7 +105,7 @@ def _worker(impl: str, N: int, L: int, segment: int, overlap: int, seed: int) ->
         est = e_step(model(), batch, opts, gen, previous, records=False, **kw)
         t1 = time.perf_counter()
         data = batch if est.windows is None else est.windows.owned_data
-        new = m_step([model()], data, est, MStepOptions(fit_dof=False)).models[0]
+        new = m_step([model()], data, est, MStepOptions(fit_shape=False)).models[0]
         t2 = time.perf_counter()
         best_e, best_it, spent = min(best_e, t1 - t0), min(best_it, t2 - t0), spent + t2 - t0
         older, previous = (previous if est.windows is None else None), est  # windows: not recycled

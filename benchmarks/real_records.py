@@ -22,10 +22,11 @@ when the data are absent.
 
 Usage (one torch thread; plants run one after the other)::
 
-    python benchmarks/real_records.py --quick                     # a smoke run, about a minute
+    python benchmarks/real_records.py --quick                     # a smoke run (clean records only)
     python benchmarks/real_records.py --out results.json          # the full suite
     python benchmarks/real_records.py --plants pendulum --outliers clean,3 \\
         --estimator-options '{"n_particles": 100}'
+    python benchmarks/real_records.py --table a.json b.json       # the tables of saved rows
 
 From Python: ``sys.path.insert(0, "benchmarks")``, ``from real_records import run_plant``;
 ``run_plant("pendulum", "clean", {"n_particles": 100})`` returns the row as a dict
@@ -37,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -84,10 +86,10 @@ def _label(outliers: str | float) -> tuple[str, float]:
     return f"{pct:g} % outliers", pct / 100.0
 
 
-OE_KEYS = ("seconds", "nfev", "njev", "simulations", "status", "message", "budget_exceeded")
+OE_KEYS = ("seconds", "cpu_seconds", "nfev", "njev", "simulations", "status", "message", "budget_exceeded")
 OURS_KEYS = (
-    "fit_seconds", "se_seconds", "interrupted", "se_interrupted", "error", "se_error", "warnings",
-    "se_warnings", "standard_errors",
+    "fit_seconds", "se_seconds", "fit_cpu_seconds", "se_cpu_seconds", "interrupted", "se_interrupted",
+    "error", "se_error", "warnings", "se_warnings", "standard_errors",
 )
 
 
@@ -149,8 +151,12 @@ def _notes(ours: dict) -> list[str]:
             notes.append(word)
     if ours.get("se_error"):
         notes.append("s.e. " + ours["se_error"].split(":")[0])
-    elif ours.get("se_warnings"):
-        notes.append(f"s.e.: {len(ours['se_warnings'])} warning(s)")
+    # torch's own DeprecationWarnings (torch.jit.script, raised inside torch) are left out of the notes
+    for w in ours.get("se_warnings") or []:
+        if w["category"] == "DeprecationWarning":
+            continue
+        missing = re.search(r"no standard error for (.*?);", w["message"])
+        notes.append(f"no s.e. for {missing.group(1)}" if missing else "s.e. warning: " + w["message"][:60])
     return notes
 
 
@@ -160,6 +166,7 @@ def run_plant(
     options: dict | None = None,
     *,
     budget: float = DEFAULT_BUDGET,
+    clock: str = "wall",
     quick: bool = False,
     random_state: int = 0,
     verbose: bool = False,
@@ -175,7 +182,10 @@ def run_plant(
     options : dict, optional
         Keyword arguments added to our estimator (e.g. ``{"n_particles": 100}``).
     budget : float
-        Wall-clock budget of each fit, s (``<= 0``: none).
+        Budget of each fit, s (``<= 0``: none).
+    clock : {"wall", "cpu"}
+        The budget's clock: wall time, or the process's CPU time (for a machine shared with other
+        jobs); the table shows the seconds of this clock, the row holds both.
     quick : bool
         Short records, few iterations (a smoke run).
     random_state : int
@@ -184,7 +194,7 @@ def run_plant(
         Print each method's result as it finishes (to stderr).
     """
     if name == "silverbox":
-        return _run_silverbox(outliers, options, budget=budget, quick=quick, verbose=verbose)
+        return _run_silverbox(outliers, options, budget=budget, clock=clock, quick=quick, verbose=verbose)
     if name not in PLANTS:
         raise ValueError(f"unknown plant {name!r}; known: {', '.join(PLANT_NAMES)}")
     plant = PLANTS[name]
@@ -196,7 +206,7 @@ def run_plant(
     say = _say(verbose, name, label)
     row: dict[str, Any] = {
         "plant": name, "data": label, "outlier_fraction": fraction, "n_train": n, "n_validation": n_val,
-        "unit": plant.unit, "options": opts, "budget": budget, "quick": quick,
+        "unit": plant.unit, "options": opts, "budget": budget, "clock": clock, "quick": quick,
         "truth": {"params": dict(plant.true), "Rw_diag": np.diag(data.params["Rw"]).tolist(),
                   "Rv_diag": np.diag(data.params["Rv"]).tolist()},
         "start": dict(plant.start), "x0_guess": data.x0_guess.tolist(),
@@ -204,13 +214,16 @@ def run_plant(
     max_nfev = QUICK_OE_NFEV if quick else None
     for loss, key in (("linear", "oe_linear"), ("soft_l1", "oe_soft_l1")):
         f0, g0 = plant.model(plant.start)
-        res = oe_fit(f0, g0, data.u, data.y, data.x0_guess, loss=loss, max_nfev=max_nfev, seconds=budget)
+        res = oe_fit(
+            f0, g0, data.u, data.y, data.x0_guess, loss=loss, max_nfev=max_nfev, seconds=budget, clock=clock
+        )
         row[key] = _oe_row(res, val.u, val.x0, val.y_true)
-        say(f"OE {loss}: RMSE {row[key]['rmse']:.4g} in {res['seconds']:.1f} s ({res['simulations']} runs)")
+        say(f"OE {loss}: RMSE {row[key]['rmse']:.4g} in {res['seconds']:.1f} s wall, "
+            f"{res['cpu_seconds']:.1f} s CPU ({res['simulations']} runs)")
     f_true, g_true = plant.model(None)
     row["true_model"] = score(simulate(f_true, g_true, val.u, val.x0), val.y_true)
     f0, g0 = plant.model(plant.start)
-    fit = default_fit(f0, g0, data.u, data.y, data.x0_guess, options=opts, seconds=budget)
+    fit = default_fit(f0, g0, data.u, data.y, data.x0_guess, options=opts, seconds=budget, clock=clock)
     ours = _ours_row(fit, data.outlier_mask)
     est = fit["estimator"]
     if est is not None:
@@ -222,7 +235,8 @@ def run_plant(
     row["ours"] = ours
     row["ratio_ours_oe_linear"] = _ratio(ours["rmse"], row["oe_linear"]["rmse"])
     row["notes"] = _notes(ours)
-    say(f"ours: RMSE {ours['rmse']:.4g}, fit {fit['fit_seconds']:.1f} s + s.e. {fit['se_seconds']:.1f} s; "
+    say(f"ours: RMSE {ours['rmse']:.4g}, fit {fit['fit_seconds']:.1f} s + s.e. {fit['se_seconds']:.1f} s "
+        f"wall ({fit['fit_cpu_seconds']:.1f} + {fit['se_cpu_seconds']:.1f} s CPU); "
         + "; ".join(row["notes"]))
     return row
 
@@ -231,7 +245,7 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b and np.isfinite(b) else math.nan
 
 
-def _run_silverbox(outliers, options, *, budget, quick, verbose) -> dict[str, Any]:
+def _run_silverbox(outliers, options, *, budget, clock, quick, verbose) -> dict[str, Any]:
     """The Silverbox row: the study's Duffing grey box from its equation-error start."""
     from silverbox.study import (
         DuffingTransition,
@@ -261,13 +275,15 @@ def _run_silverbox(outliers, options, *, budget, quick, verbose) -> dict[str, An
     row: dict[str, Any] = {
         "plant": "silverbox", "data": label, "outlier_fraction": fraction, "n_train": n,
         "n_validation": int(data.y_arrow.shape[0]), "unit": "mV (arrow: full / w/o tail)", "options": opts,
-        "budget": budget, "quick": quick, "start": dict(init), "x0_guess": x0_guess.tolist(), "truth": None,
+        "budget": budget, "clock": clock, "quick": quick, "start": dict(init), "x0_guess": x0_guess.tolist(),
+        "truth": None,
     }
     max_nfev = QUICK_OE_NFEV if quick else None
     for loss, key in (("linear", "oe_linear"), ("soft_l1", "oe_soft_l1")):
         f0, g0 = model()
         res = oe_fit(
-            f0, g0, data.u_train, data.y_train, x0_guess, loss=loss, max_nfev=max_nfev, seconds=budget
+            f0, g0, data.u_train, data.y_train, x0_guess, loss=loss, max_nfev=max_nfev, seconds=budget,
+            clock=clock,
         )
         row[key] = _oe_row(res)
         with np.errstate(all="ignore"):
@@ -275,7 +291,9 @@ def _run_silverbox(outliers, options, *, budget, quick, verbose) -> dict[str, An
         say(f"OE {loss}: arrow RMSE {row[key]['rmse']:.3f} mV in {res['seconds']:.1f} s")
     row["true_model"] = {"rmse": math.nan, "fit_percent": math.nan}
     f0, g0 = model()
-    fit = default_fit(f0, g0, data.u_train, data.y_train, x0_guess, options=opts, seconds=budget)
+    fit = default_fit(
+        f0, g0, data.u_train, data.y_train, x0_guess, options=opts, seconds=budget, clock=clock
+    )
     ours = _ours_row(fit, data.outlier_mask)
     est = fit["estimator"]
     if est is not None:
@@ -306,10 +324,13 @@ def _rmse_cell(m: dict, silverbox: bool) -> str:
 
 def markdown_table(rows: list[dict]) -> str:
     """The suite's table: RMSE on the validation record (the plant's unit; Silverbox: mV on the
-    arrow, full / without the extrapolated tail) and wall seconds of each method."""
+    arrow, full / without the extrapolated tail) and seconds of each method on the rows' budget
+    clock (wall or CPU)."""
+    cpu = bool(rows) and rows[0].get("clock") == "cpu"
+    s = "CPU s" if cpu else "s"
     lines = [
-        "| plant | data | OE linear: RMSE (s) | OE soft-L1: RMSE (s) | true model RMSE "
-        "| ours: RMSE (fit + s.e. s) | ours / OE lin | n_iter | dof | flagged | notes |",
+        f"| plant | data | OE linear: RMSE ({s}) | OE soft-L1: RMSE ({s}) | true model RMSE "
+        f"| ours: RMSE (fit + s.e. {s}) | ours / OE lin | n_iter | dof | flagged | notes |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
@@ -318,10 +339,11 @@ def markdown_table(rows: list[dict]) -> str:
         oe_cells = []
         for m in (lin, soft):
             mark = " budget" if m.get("budget_exceeded") else ""
-            oe_cells.append(f"{_rmse_cell(m, sb)} ({m['seconds']:.1f}{mark})")
-        se = ours.get("se_seconds", math.nan)
+            oe_cells.append(f"{_rmse_cell(m, sb)} ({m['cpu_seconds' if cpu else 'seconds']:.1f}{mark})")
+        se = ours.get("se_cpu_seconds" if cpu else "se_seconds", math.nan)
         se_cell = f"{se:.1f}" if np.isfinite(se) else "-"
-        ours_cell = f"{_rmse_cell(ours, sb)} ({ours['fit_seconds']:.1f} + {se_cell})"
+        fit_s = ours["fit_cpu_seconds" if cpu else "fit_seconds"]
+        ours_cell = f"{_rmse_cell(ours, sb)} ({fit_s:.1f} + {se_cell})"
         if ours.get("interrupted"):
             ours_cell += " budget"
         flagged = "-"
@@ -334,7 +356,7 @@ def markdown_table(rows: list[dict]) -> str:
         lines.append(
             f"| {r['plant']} | {r['data']} | {oe_cells[0]} | {oe_cells[1]} | {true_cell} | {ours_cell} | "
             f"{_g(r['ratio_ours_oe_linear'], 2)} | {ours.get('n_iter', '-')} | {_g(ours.get('dof'), 2)} | "
-            f"{flagged} | {'; '.join(r['notes'])} |"
+            f"{flagged} | {'; '.join(_notes(ours))} |"
         )
     return "\n".join(lines)
 
@@ -366,9 +388,11 @@ def parameter_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def _settings_for(plant: str, outliers: list[str] | None) -> list[str]:
+def _settings_for(plant: str, outliers: list[str] | None, quick: bool = False) -> list[str]:
     if outliers is not None:
         return outliers
+    if quick:
+        return ["clean"]
     extra = [PENDULUM_EXTRA] if plant == "pendulum" else []
     return list(DEFAULT_OUTLIERS[:1]) + extra + list(DEFAULT_OUTLIERS[1:])
 
@@ -379,6 +403,7 @@ def run_suite(
     options: dict | None = None,
     *,
     budget: float = DEFAULT_BUDGET,
+    clock: str = "wall",
     quick: bool = False,
     out: str | None = None,
     verbose: bool = True,
@@ -387,9 +412,11 @@ def run_suite(
     after each row, as JSON)."""
     rows = []
     for name in plants or list(PLANT_NAMES):
-        for setting in _settings_for(name, outliers):
+        for setting in _settings_for(name, outliers, quick):
             try:
-                row = run_plant(name, setting, options, budget=budget, quick=quick, verbose=verbose)
+                row = run_plant(
+                    name, setting, options, budget=budget, clock=clock, quick=quick, verbose=verbose
+                )
             except FileNotFoundError as exc:  # the Silverbox data are not here
                 print(f"[{name}] skipped: {exc}", file=sys.stderr, flush=True)
                 break
@@ -418,13 +445,29 @@ def main(argv: list[str] | None = None) -> list[dict]:
     parser.add_argument("--plants", default=None, help=f"comma-separated subset of {','.join(PLANT_NAMES)}")
     parser.add_argument(
         "--outliers", default=None,
-        help="comma-separated settings, 'clean' or a percentage (default clean,5; the pendulum also 3)",
+        help="comma-separated settings, 'clean' or a percentage (default clean,5, the pendulum also 3; "
+        "--quick: clean)",
     )
-    parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, help="wall-clock budget per fit, s")
+    parser.add_argument("--budget", type=float, default=DEFAULT_BUDGET, help="budget per fit, s (0: none)")
+    parser.add_argument(
+        "--budget-clock", choices=("wall", "cpu"), default="wall",
+        help="the budget's clock, also the table's seconds: wall time, or this process's CPU time (a "
+        "machine shared with other jobs)",
+    )
     parser.add_argument("--quick", action="store_true", help="short records, few iterations (smoke run)")
     parser.add_argument("--estimator-options", default="{}", help="JSON keyword arguments for our estimator")
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
+    parser.add_argument(
+        "--table", nargs="+", default=None, metavar="JSON",
+        help="print the tables of rows saved by --out (several files: concatenated) and run nothing",
+    )
     args = parser.parse_args(argv)
+    if args.table:
+        rows = [r for path in args.table for r in json.loads(Path(path).read_text())["rows"]]
+        print(markdown_table(rows))
+        print()
+        print(parameter_table(rows))
+        return rows
     plants = None
     if args.plants:
         plants = [p.strip() for p in args.plants.split(",") if p.strip()]
@@ -440,7 +483,9 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error("--estimator-options must be a JSON object")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
-    rows = run_suite(plants, outliers, options, budget=args.budget, quick=args.quick, out=args.out)
+    rows = run_suite(
+        plants, outliers, options, budget=args.budget, clock=args.budget_clock, quick=args.quick, out=args.out
+    )
     print(markdown_table(rows))
     print()
     print(parameter_table(rows))

@@ -37,7 +37,7 @@ def em_iteration(batch: SequenceBatch, L: int, segment_length: int | None, repea
         t0 = time.perf_counter()
         est = e_step(model(), batch, opts, gen, previous, records=False)
         data = batch if est.windows is None else est.windows.owned_data
-        m_step([model()], data, est, MStepOptions(fit_dof=False))
+        m_step([model()], data, est, MStepOptions(fit_shape=False))
         best, previous = min(best, time.perf_counter() - t0), est
     return best
 

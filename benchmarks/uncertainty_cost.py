@@ -177,7 +177,7 @@ def main() -> None:
     options = {}
     if args.manipulator:
         problems = (("manipulator", _manipulator),)
-        options = dict(fit_Rw=False, fit_Rv=False, fit_dof=False, n_trajectories=TRAJECTORIES)
+        options = dict(fit_Rw=False, fit_Rv=False, fit_shape=False, n_trajectories=TRAJECTORIES)
     if args.trajectories:
         options["n_trajectories"] = args.trajectories
     for name, build in problems:

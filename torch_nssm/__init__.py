@@ -16,6 +16,7 @@ import importlib
 __all__ = [
     "RobustNSSMEstimator",
     "LinearInParameters",
+    "ContinuousTimeTransition",
     "StateEstimate",
     "NumericalError",
     "fit_independent",
@@ -26,6 +27,7 @@ __all__ = [
     "diagnostics",
     "models",
     "neural",
+    "noise",
     "plotting",
     "warm_start",
 ]
@@ -35,6 +37,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "RobustNSSMEstimator": (".estimator", "RobustNSSMEstimator"),
     "LinearInParameters": (".core.parametric", "LinearInParameters"),
+    "ContinuousTimeTransition": (".blocks.continuous", "ContinuousTimeTransition"),
     "StateEstimate": (".inference.results", "StateEstimate"),
     "NumericalError": (".inference.filtering", "NumericalError"),
     "fit_independent": (".estimator", "fit_independent"),
@@ -45,6 +48,7 @@ _LAZY = {
     "diagnostics": (".diagnostics", None),
     "models": (".models", None),
     "neural": (".neural", None),
+    "noise": (".noise", None),
     "plotting": (".plotting", None),
     "warm_start": (".warm_start", None),
 }

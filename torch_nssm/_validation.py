@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numbers
+import warnings
 
 import numpy as np
 import torch
@@ -419,3 +420,32 @@ def as_rows_array(value, name: str, n: int) -> np.ndarray:
     if arr.ndim == 0 or arr.shape[-1] != n:
         raise ValueError(f"{name} must have shape (..., {n}), got shape {arr.shape}")
     return arr.reshape(-1, n)
+
+
+def check_data_against_model(data, f: nn.Module, g: nn.Module, nu: int, p: int) -> None:
+    """Contradictions between the data (a ``SequenceBatch``) and the model that would fit nonsense
+    without a word: an error, or a warning for a record too short for the free parameters."""
+    for label, module in (("f", f), ("g", g)):
+        declared = getattr(module, "nu", None)
+        if isinstance(declared, int) and declared != nu:
+            raise ValueError(
+                f"u has {nu} input column(s) but {label} ({type(module).__name__}) declares nu={declared}: "
+                "pass the inputs the module was built for"
+            )
+    y = data.y
+    for j in range(p):
+        col = y[..., j][~torch.isnan(y[..., j])]
+        if col.numel() > 1 and bool((col == col[0]).all()):
+            raise ValueError(
+                f"y{'' if p == 1 else f'[:, {j}]'} is constant ({float(col[0]):g} at every observed sample): "
+                "there is nothing to identify"
+            )
+    n_obs = int(data.obs_mask.any(-1).sum())
+    n_free = sum(int(q.numel()) for m in (f, g) for q in m.parameters() if q.requires_grad)
+    if n_obs < 10 * max(n_free, 1):
+        warnings.warn(
+            f"only {n_obs} observed samples for {n_free} free parameters of f and g (plus the noise "
+            "parameters): the estimates will be poorly determined; use a longer record",
+            UserWarning,
+            stacklevel=5,
+        )

@@ -1,5 +1,5 @@
 """Parametric-bootstrap intervals: simulate from the fitted model, refit every record in one batched
-EM pass (:func:`~torch_nssm.estimator.fit_independent`), read percentile intervals.
+EM pass (:func:`~torch_nssm.studies.fit_independent`), read percentile intervals.
 
 The observed-information intervals (``RobustNSSMEstimator.confidence_intervals``) rest on the
 normal approximation of the estimator; the bootstrap does not, at the price of ``n_boot`` refits
@@ -14,6 +14,9 @@ from dataclasses import dataclass
 import numpy as np
 from sklearn.base import clone
 from sklearn.utils import check_random_state
+
+from .core.noise import restart_parameters
+from .studies import fit_independent
 
 __all__ = ["BootstrapResult", "parametric_bootstrap", "parameter_values"]
 
@@ -43,7 +46,8 @@ class BootstrapResult:
 
 def parameter_values(est) -> dict:
     """The fitted values keyed like ``standard_errors_``: the free parameters of ``f_`` and ``g_``
-    and the estimated noise parameters (``Rw``, ``Rv``, ``dof``)."""
+    and the estimated noise parameters (``Rw``, and the measurement noise's as its family says:
+    ``Rv``, ``dof``, ...)."""
     out = {}
     for label in ("f", "g"):
         for name, p in getattr(est, f"{label}_").named_parameters():
@@ -51,11 +55,8 @@ def parameter_values(est) -> dict:
                 out[f"{label}.{name}"] = p.detach().cpu().numpy().copy()
     if est._fitted_Rw():
         out["Rw"] = np.asarray(est.Rw_)
-    if est.fit_Rv:
-        out["Rv"] = np.asarray(est.Rv_)
-    dof = np.asarray(est.dof_, dtype=float)
-    if est.fit_dof and np.all(np.isfinite(dof)):
-        out["dof"] = dof
+    for name in est._fitted_noise().estimated(fit_Rv=bool(est.fit_Rv)):
+        out[name] = np.asarray(getattr(est, f"{name}_"))
     return out
 
 
@@ -80,8 +81,6 @@ def parametric_bootstrap(est, u, *, n_boot: int = 100, level: float = 0.95, rand
     -------
     BootstrapResult
     """
-    from .estimator import fit_independent  # the facade layer: imported when called
-
     est._check_fitted()
     if not 0 < level < 1:
         raise ValueError(f"level must lie in (0, 1), got {level!r}")
@@ -93,13 +92,12 @@ def parametric_bootstrap(est, u, *, n_boot: int = 100, level: float = 0.95, rand
         raise ValueError("bootstrap takes one record's inputs u, not a list of records")
     if getattr(est, "_y_1d", False):
         ys = ys[..., 0]
-    dof = np.asarray(est.dof_, dtype=float)
     start = clone(est).set_params(
         f=copy.deepcopy(est.f_),
         g=copy.deepcopy(est.g_),
         Rw_init=np.asarray(est.Rw_),
         Rv_init=np.asarray(est.Rv_),
-        dof_init=float(np.median(dof)) if np.all(np.isfinite(dof)) else est.dof_init,
+        **restart_parameters(est.noise, est._fitted_noise()),  # e.g. dof_init
         x0_mean=np.asarray(est.x0_mean_),
         x0_cov=np.asarray(est.x0_cov_),
         n_init=1,

@@ -5,17 +5,16 @@ weighs every sample by its squared residual, so a few glitches in the *measured*
 it and cross-validation then ranks robust models by a non-robust metric.  :func:`robust_r2_score`
 replaces the variances by squared robust scales (1.4826 x median absolute deviation); pass
 ``scoring=robust_r2_scorer`` to ``GridSearchCV`` or ``cross_val_score``, or ``robust=True`` to
-``score``.
+``score``.  :func:`fit_percent` is MATLAB's ``compare`` fit (NRMSE in percent), per output.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from sklearn.metrics import make_scorer
 
 from ._stats import robust_scale
 
-__all__ = ["robust_r2_score", "robust_r2_scorer"]
+__all__ = ["fit_percent", "robust_r2_score", "robust_r2_scorer"]  # noqa: F822 (robust_r2_scorer: __getattr__)
 
 
 def robust_r2_score(y_true, y_pred) -> float:
@@ -43,6 +42,37 @@ def robust_r2_score(y_true, y_pred) -> float:
     return float(np.mean(scores))
 
 
+def fit_percent(y_true, y_pred) -> np.ndarray:
+    """Fit in percent per output, as MATLAB's ``compare``: ``100 (1 - ||y - y_pred|| / ||y - mean(y)||)``.
+
+    The norms run over the observed samples of each output column (NaN in ``y_true`` is missing and
+    left out; the mean is theirs).  100 is a perfect fit, 0 is no better than the mean, and it is
+    negative for a worse prediction.  In terms of R² over the same samples,
+    ``fit = 100 (1 - sqrt(1 - R²))``.
+
+    Parameters
+    ----------
+    y_true, y_pred : array-like of shape (N,) or (N, p), or lists of them (records, pooled)
+
+    Returns
+    -------
+    ndarray of shape (p,)
+        NaN for an output with fewer than two observed samples or no spread.
+    """
+    yt, yp = _pooled(y_true), _pooled(y_pred)
+    if yt.shape != yp.shape:
+        raise ValueError(f"y_true and y_pred must have the same shape, got {yt.shape} and {yp.shape}")
+    out = np.full(yt.shape[1], np.nan)
+    for j in range(yt.shape[1]):
+        m = ~np.isnan(yt[:, j])
+        if m.sum() < 2:
+            continue
+        spread = np.linalg.norm(yt[m, j] - yt[m, j].mean())
+        if spread > 0:
+            out[j] = 100.0 * (1.0 - np.linalg.norm(yt[m, j] - yp[m, j]) / spread)
+    return out
+
+
 def _pooled(y) -> np.ndarray:
     """One array ``(N, p)`` from an array or a list of records."""
     if isinstance(y, (list, tuple)) and len(y) and np.ndim(y[0]) >= 1:
@@ -51,5 +81,12 @@ def _pooled(y) -> np.ndarray:
     return a.reshape(len(a), -1)
 
 
-#: ``scoring=`` for scikit-learn's model selection: ``robust_r2_score`` of ``predict(u)`` (free run).
-robust_r2_scorer = make_scorer(robust_r2_score)
+def __getattr__(name: str):
+    """``robust_r2_scorer``: ``scoring=`` for scikit-learn's model selection, ``robust_r2_score`` of
+    ``predict(u)`` (free run).  Made on first use (PEP 562): ``sklearn.metrics`` loads ~60 modules."""
+    if name == "robust_r2_scorer":
+        from sklearn.metrics import make_scorer
+
+        globals()[name] = scorer = make_scorer(robust_r2_score)
+        return scorer
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,4 +1,5 @@
-"""Plots of a fit: parameter trajectories, flagged outliers, smoothed states with bands, residual tests.
+"""Plots of a fit: parameter trajectories, flagged outliers, smoothed states with bands, residual tests,
+measured against predicted outputs.
 
 Each function draws on the ``ax`` it is given (or on a new figure) and returns its Axes, so plots
 compose with the rest of a matplotlib figure.  matplotlib is imported when a function is called.
@@ -13,7 +14,9 @@ from sklearn.exceptions import NotFittedError
 
 from .inference.results import StateEstimate
 
-__all__ = ["plot_history", "plot_outliers", "plot_parameters", "plot_residuals", "plot_states"]
+__all__ = [
+    "plot_compare", "plot_history", "plot_outliers", "plot_parameters", "plot_residuals", "plot_states",
+]
 
 #: Entries of ``history_`` that are covariance matrices: only their upper triangle is drawn.
 _SYMMETRIC = ("Rw", "Rv", "x0_cov")
@@ -36,11 +39,20 @@ def _history(est) -> Mapping[str, np.ndarray]:
     return history
 
 
+#: Keys of ``history_`` that are not parameters of the model (or not drawn by default).
+_NOT_DRAWN = ("log_likelihood", "x0_mean", "accelerated")
+
+
 def _default_params(history: Mapping[str, np.ndarray]) -> list[str]:
+    """``f``'s and ``g``'s parameters, ``Rw``, ``Rv``, then the noise family's other parameters
+    whose trajectory is finite (one held at ``inf`` is not drawn)."""
     names = [k for k in history if k.startswith(("f.", "g."))]
     names += [k for k in ("Rw", "Rv") if k in history]
-    if "dof" in history and np.all(np.isfinite(history["dof"])):
-        names.append("dof")
+    names += [
+        k for k in history
+        if k not in names and k not in _NOT_DRAWN and not k.startswith("rejected.")
+        and np.all(np.isfinite(np.asarray(history[k], dtype=float)))
+    ]
     return names
 
 
@@ -101,8 +113,8 @@ def plot_history(est, params=None, true_values=None, ax=None):
         A fitted estimator, or its ``history_``.
     params : str or list of str, optional
         Keys of ``history_`` to draw, e.g. ``["f.a", "g.c", "Rv", "dof", "log_likelihood"]``;
-        default: every parameter of ``f`` and ``g``, ``Rw``, ``Rv`` and ``dof`` (unless the noise
-        is Gaussian).  Vector and matrix entries give one line per element (the upper triangle
+        default: every parameter of ``f`` and ``g``, ``Rw``, ``Rv`` and the noise family's other
+        parameters (``dof``).  Vector and matrix entries give one line per element (the upper triangle
         of ``Rw``, ``Rv``, ``x0_cov``).
     true_values : dict, optional
         ``{name: value}`` drawn as dashed horizontal lines in the colour of the estimate
@@ -454,3 +466,73 @@ def plot_residuals(analysis, ax=None):
                 "lag (> 0: past inputs)",
             )
     return grid
+
+
+def plot_compare(result, y, ax=None, *, record: int = 0, t=None):
+    """Measured against predicted outputs, one panel per output, the fit in percent in the legend
+    (MATLAB's ``compare`` plot).
+
+    Samples left out of a robust fit (``result.excluded``) are marked with grey crosses.
+
+    Parameters
+    ----------
+    result : CompareResult
+        From ``est.compare(u, y)`` (:func:`torch_nssm.evaluation.compare`).
+    y : array-like of shape (N,) or (N, p), or list of them
+        The measured outputs given to ``compare``.
+    ax : matplotlib Axes or sequence of Axes, optional
+        One Axes per output (a new figure of ``p`` rows if omitted).
+    record : int, default=0
+        Which record to draw when ``compare`` was given a list of records.
+    t : array-like of shape (N,), optional
+        Time axis (default: the sample index).
+
+    Returns
+    -------
+    ndarray of Axes, shape (p,)
+    """
+    from .evaluation import CompareResult
+
+    if not isinstance(result, CompareResult):
+        raise TypeError(f"result must be a CompareResult (from compare), got {type(result).__name__}")
+    multi = isinstance(result.y_pred, list)
+    pick = (lambda a: a[record]) if multi else (lambda a: a)
+    if multi and not 0 <= record < len(result.y_pred):
+        raise ValueError(f"record must lie in [0, {len(result.y_pred)}), got {record!r}")
+    if multi != isinstance(y, (list, tuple)):
+        raise ValueError("y must be a list of records exactly when compare was given one")
+    meas = np.asarray(pick(y), dtype=float)
+    pred = np.asarray(pick(result.y_pred), dtype=float)
+    n = meas.shape[0]
+    meas, pred = meas.reshape(n, -1), pred.reshape(pred.shape[0], -1)
+    if pred.shape != meas.shape:
+        raise ValueError(
+            f"y has shape {meas.shape}, the predictions {pred.shape}: pass the y given to compare"
+        )
+    fit = np.atleast_2d(result.fit)[record if multi else 0]
+    excluded = result.excluded
+    if excluded is not None:
+        excluded = np.asarray(pick(excluded), dtype=bool).reshape(n, -1)
+    p = meas.shape[1]
+    xlabel = "sample k" if t is None else "time"
+    t = np.arange(n) if t is None else np.asarray(t, dtype=float).reshape(-1)
+    if t.shape[0] != n:
+        raise ValueError(f"t must have {n} entries, got {t.shape[0]}")
+    if ax is None:
+        _, axes = _pyplot().subplots(p, 1, figsize=(8.0, 2.8 * p), squeeze=False, sharex=True)
+        axes = axes[:, 0]
+    else:
+        axes = np.asarray([ax] if not isinstance(ax, (Sequence, np.ndarray)) else ax, dtype=object).ravel()
+        if len(axes) != p:
+            raise ValueError(f"ax holds {len(axes)} Axes for {p} outputs")
+    what = "simulated" if result.horizon is None else f"{result.horizon}-step predicted"
+    for j, a in enumerate(axes):
+        a.plot(t, meas[:, j], color="0.55", linewidth=1.0, label="measured")
+        a.plot(t, pred[:, j], color="C0", linewidth=1.0, label=f"{what}: fit {fit[j]:.1f} %")
+        if excluded is not None and excluded[:, j].any():
+            m = excluded[:, j]
+            a.plot(t[m], meas[m, j], "x", color="0.3", markersize=5, label=f"left out ({result.robust})")
+        a.set_ylabel(f"y[{j}]" if p > 1 else "y")
+        a.legend(fontsize="small", loc="best")
+    axes[-1].set_xlabel(xlabel)
+    return axes

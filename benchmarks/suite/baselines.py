@@ -100,31 +100,42 @@ def free_parameters(*modules: nn.Module) -> dict[str, float]:
 
 
 # ------------------------------------------------------------------------------ budget
+#: The clocks of a budget: wall time, or the process's CPU time (user + system; robust to other
+#: jobs on a shared machine), with their interval timer and signal.
+CLOCKS = {"wall": (signal.ITIMER_REAL, signal.SIGALRM), "cpu": (signal.ITIMER_PROF, signal.SIGPROF)}
+
+
+def clock_now(clock: str) -> float:
+    """Seconds on ``clock`` ("wall" or "cpu")."""
+    return time.perf_counter() if clock == "wall" else time.process_time()
+
+
 @contextmanager
-def budget(seconds: float | None, grace: float | None = None) -> Iterator[dict]:
-    """Raise ``KeyboardInterrupt`` in the main thread after ``seconds`` of wall time (as Ctrl-C),
-    and once more ``grace`` seconds later if the work is still running (a fit that goes on after
-    its first interrupt, e.g. a second EM run).  Yields a dict whose ``"fired"`` counts the
-    interrupts raised.  ``None`` or ``<= 0``: no budget."""
+def budget(seconds: float | None, grace: float | None = None, clock: str = "wall") -> Iterator[dict]:
+    """Raise ``KeyboardInterrupt`` in the main thread after ``seconds`` on ``clock`` (as Ctrl-C), and
+    once more ``grace`` seconds later if the work is still running (a fit that goes on after its
+    first interrupt, e.g. a second EM run).  Yields a dict whose ``"fired"`` counts the interrupts
+    raised.  ``None`` or ``<= 0``: no budget."""
     state = {"fired": 0}
     if not seconds or seconds <= 0:
         yield state
         return
     grace = max(30.0, 0.25 * seconds) if grace is None else grace
+    timer, signum = CLOCKS[clock]
 
     def handler(signum, frame):
         state["fired"] += 1
         if state["fired"] == 1 and grace > 0:
-            signal.setitimer(signal.ITIMER_REAL, grace)
+            signal.setitimer(timer, grace)
         raise KeyboardInterrupt
 
-    previous = signal.signal(signal.SIGALRM, handler)
-    signal.setitimer(signal.ITIMER_REAL, seconds)
+    previous = signal.signal(signum, handler)
+    signal.setitimer(timer, seconds)
     try:
         yield state
     finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, previous)
+        signal.setitimer(timer, 0)
+        signal.signal(signum, previous)
 
 
 # ------------------------------------------------------------------------------ OE least squares
@@ -138,23 +149,25 @@ def oe_fit(
     loss: str = "linear",
     max_nfev: int | None = None,
     seconds: float | None = None,
+    clock: str = "wall",
 ) -> dict[str, Any]:
     """Output-error least squares of ``f``, ``g`` and the first state over the whole record.
 
     ``loss="linear"``: plain least squares.  ``loss="soft_l1"``: ``f_scale`` is the robust scale
     (1.4826 MAD) of the start's residuals; a second pass from the first one's solution uses the
     robust scale of its residuals (the start's residuals are mostly model error, far larger than
-    the noise).  A simulation that is not finite gives residuals of 1e6 times ``y``'s spread (the
-    trust region then shrinks).  ``seconds``: a wall-clock budget; when spent, the best parameters
-    evaluated so far are kept (``"budget_exceeded": True``).
+    the noise).  A simulation that diverges (not finite, or errors beyond 1e6 times ``y``'s spread)
+    gives residuals of 1e6 times that spread (the trust region then shrinks).  ``seconds``: a budget
+    on ``clock`` ("wall" or "cpu"); when spent, the best parameters evaluated so far are kept
+    (``"budget_exceeded": True``).
 
     Returns
     -------
     dict
-        ``f``, ``g`` (fitted copies), ``x0``, ``seconds``, ``nfev`` and ``njev`` (scipy's counts, of
-        the passes that finished), ``simulations`` (every simulation of the record, the finite
-        differences' included), ``status``,
-        ``message``, ``cost``, ``budget_exceeded``, ``f_scale`` (soft-L1 passes).
+        ``f``, ``g`` (fitted copies), ``x0``, ``seconds`` (wall), ``cpu_seconds``, ``nfev`` and
+        ``njev`` (scipy's counts, of the passes that finished), ``simulations`` (every simulation of
+        the record, the finite differences' included), ``status``, ``message``, ``cost``,
+        ``budget_exceeded``, ``f_scale`` (soft-L1 passes), ``loss``.
     """
     f, g = copy.deepcopy(f), copy.deepcopy(g)
     params = [p for p in list(f.parameters()) + list(g.parameters()) if p.requires_grad]
@@ -164,7 +177,7 @@ def oe_fit(
     nx = x0.size
     theta0 = np.concatenate([p.detach().numpy().reshape(-1) for p in params] + [x0])
     spread = float(np.nanstd(y)) or 1.0
-    t0 = time.perf_counter()
+    t0, c0, b0 = time.perf_counter(), time.process_time(), clock_now(clock)
     # the best parameters evaluated in the current pass, by that pass's loss (kept when the budget ends it)
     best = {"cost": math.inf, "theta": theta0.copy(), "f_scale": 1.0}
     counts = {"nfev": 0, "njev": 0, "simulations": 0}
@@ -177,13 +190,13 @@ def oe_fit(
                 start += n
 
     def residuals(theta: np.ndarray) -> np.ndarray:
-        if seconds is not None and time.perf_counter() - t0 > seconds:
+        if seconds and seconds > 0 and clock_now(clock) - b0 > seconds:
             raise BudgetExceeded
         counts["simulations"] += 1
         set_theta(theta)
         with np.errstate(all="ignore"):
             r = (simulate(f, g, u, theta[-nx:]) - y).reshape(-1)
-        if not np.all(np.isfinite(r)):
+        if not (np.all(np.isfinite(r)) and np.abs(r).max() < 1e6 * spread):  # diverged
             return np.full(r.shape, 1e6 * spread)
         z = (r / best["f_scale"]) ** 2
         cost = float(np.sum(z if loss == "linear" else 2.0 * (np.sqrt(1.0 + z) - 1.0)))
@@ -202,9 +215,10 @@ def oe_fit(
                 f_scale = MAD_TO_STD * float(np.median(np.abs(r))) or 1.0
                 scales.append(f_scale)
             best.update(cost=math.inf, theta=theta.copy(), f_scale=f_scale)
-            res = least_squares(
-                residuals, theta, loss=loss, f_scale=f_scale, x_scale="jac", max_nfev=max_nfev
-            )
+            with np.errstate(over="ignore"):
+                res = least_squares(
+                    residuals, theta, loss=loss, f_scale=f_scale, x_scale="jac", max_nfev=max_nfev
+                )
             counts["nfev"] += res.nfev
             counts["njev"] += int(res.njev or 0)
             theta, status, message = res.x, res.status, res.message
@@ -218,6 +232,7 @@ def oe_fit(
         "g": g,
         "x0": theta[-nx:].copy(),
         "seconds": time.perf_counter() - t0,
+        "cpu_seconds": time.process_time() - c0,
         "nfev": counts["nfev"],
         "njev": counts["njev"],
         "simulations": counts["simulations"],
@@ -250,16 +265,18 @@ def default_fit(
     *,
     options: dict | None = None,
     seconds: float | None = 300.0,
+    clock: str = "wall",
     standard_errors: bool = True,
 ) -> dict[str, Any]:
     """``RobustNSSMEstimator(f, g, x0_mean=x0_mean, random_state=0, **options).fit(u, y)``, then
-    ``standard_errors_``, each under a budget of ``seconds`` (a first ``KeyboardInterrupt`` when it
-    is spent, a second one a grace period later).
+    ``standard_errors_``, each under a budget of ``seconds`` on ``clock`` (a first
+    ``KeyboardInterrupt`` when it is spent, a second one a grace period later).
 
     Returns
     -------
     dict
-        ``estimator`` (or ``None`` when nothing was fitted), ``fit_seconds``, ``se_seconds``,
+        ``estimator`` (or ``None`` when nothing was fitted), ``fit_seconds``, ``se_seconds`` (wall),
+        ``fit_cpu_seconds``, ``se_cpu_seconds``,
         ``interrupted`` (how many interrupts the fit got), ``se_interrupted``, ``error`` (text of an
         exception that ended the fit), ``se_error``, ``warnings`` (deduplicated), ``standard_errors``
         (dict of floats or lists).
@@ -270,9 +287,9 @@ def default_fit(
     out: dict[str, Any] = {"estimator": None, "error": None, "se_error": None, "standard_errors": None}
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         try:
-            with budget(seconds) as state:
+            with budget(seconds, clock=clock) as state:
                 est.fit(u, y)
             out["estimator"] = est
         except KeyboardInterrupt:
@@ -282,16 +299,17 @@ def default_fit(
             if hasattr(est, "f_"):
                 out["estimator"] = est
         out["fit_seconds"] = time.perf_counter() - t0
+        out["fit_cpu_seconds"] = time.process_time() - c0
         out["interrupted"] = state["fired"]
         fit_warnings = _dedupe(caught)
-    out["se_seconds"], out["se_interrupted"] = math.nan, 0
+    out["se_seconds"], out["se_cpu_seconds"], out["se_interrupted"] = math.nan, math.nan, 0
     se_warnings: list[dict[str, str]] = []
     if standard_errors and out["estimator"] is not None and out["error"] is None:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             try:
-                with budget(seconds, grace=0) as state:
+                with budget(seconds, grace=0, clock=clock) as state:
                     se = est.standard_errors_
                 out["standard_errors"] = {k: np.asarray(v).tolist() for k, v in se.items()}
             except KeyboardInterrupt:
@@ -299,6 +317,7 @@ def default_fit(
             except Exception as exc:  # noqa: BLE001
                 out["se_error"] = f"{type(exc).__name__}: {exc}"
             out["se_seconds"] = time.perf_counter() - t0
+            out["se_cpu_seconds"] = time.process_time() - c0
             out["se_interrupted"] = state["fired"]
             se_warnings = _dedupe(caught)
     out["warnings"] = fit_warnings

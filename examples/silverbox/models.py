@@ -12,6 +12,12 @@ special case (:func:`from_duffing` writes it in this form exactly), so a richer 
 from the fitted Duffing grey box, in its basin, and can only improve the simulation error it is
 fitted by.  Extra states (``nx > 2``: unmodelled electronics) start driven by the input and
 uncoupled from the oscillator, so the gradient reaches the coupling.
+
+:class:`DuffingODE` is the Duffing oscillator in continuous time, ``m y'' + c y' + k y + k2 y^2 +
+k3 y^3 = u + u0``, as the right-hand side ``dx/dt`` of a
+:class:`~torch_nssm.ContinuousTimeTransition` (time in milliseconds): its parameters do not
+depend on the sample time or the integrator, and :meth:`DuffingODE.physical` gives the mass,
+damping and stiffness (and the natural frequency and damping ratio).
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ from torch import Tensor, nn
 from torch_nssm._ops import broadcast_leading
 from torch_nssm.core.parametric import LinearInParameters
 
-__all__ = ["PolyStateSpace", "from_duffing", "monomials", "FeedthroughObservation"]
+__all__ = ["PolyStateSpace", "from_duffing", "monomials", "FeedthroughObservation", "DuffingODE"]
 
 
 def monomials(nvars: int, degrees: Sequence[int]) -> list[tuple[int, ...]]:
@@ -165,3 +171,82 @@ class FeedthroughObservation(LinearInParameters):
     def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         x, u = broadcast_leading(x, u)
         return u[..., :1].unsqueeze(-1), x[..., :1]
+
+
+class DuffingODE(LinearInParameters):
+    """``dx/dt`` of the Duffing oscillator ``m y'' + c y' + k y + k2 y^2 + k3 y^3 = u + u0``, state
+    ``x = [y, v]`` (``v = dy/dt``), time in milliseconds; divided by the mass, it is linear in
+
+        ``theta = (b, c_m, k_m, k2_m, k3_m, a0) = (1, c, k, k2, k3, u0) / m``::
+
+        dy/dt = v
+        dv/dt = b u - c_m v - k_m y - k2_m y^2 - k3_m y^3 + a0
+
+    so with :class:`~torch_nssm.ContinuousTimeTransition` and explicit or semi-implicit Euler
+    (``velocities=[1]``) the EM engine updates it in closed form; with RK4 by gradient.  Semi-implicit
+    Euler with one step per sample is the study's :class:`~silverbox.study.DuffingTransition` with
+    ``e = 0`` (:meth:`from_discrete` maps one to the other).  Units: those of the normalised ``y``
+    and ``u`` (:func:`~silverbox.study.prepare_silverbox`) and milliseconds.
+
+    Parameters
+    ----------
+    b, c_m, k_m, k2_m, k3_m, a0 : float
+        Initial values.
+    """
+
+    names = ("b", "c_m", "k_m", "k2_m", "k3_m", "a0")
+
+    def __init__(
+        self,
+        b: float = 0.1,
+        c_m: float = 0.05,
+        k_m: float = 0.15,
+        k2_m: float = 0.0,
+        k3_m: float = 0.0,
+        a0: float = 0.0,
+        *,
+        dtype: torch.dtype = torch.float64,
+    ) -> None:
+        super().__init__()
+        for name, value in zip(self.names, (b, c_m, k_m, k2_m, k3_m, a0)):
+            setattr(self, name, nn.Parameter(torch.tensor(float(value), dtype=dtype)))
+
+    @classmethod
+    def from_discrete(cls, coef: dict[str, float], Ts: float) -> DuffingODE:
+        """The ODE whose semi-implicit Euler step of ``Ts`` (ms) is :class:`DuffingTransition` with
+        coefficients ``coef`` (its ``e`` ignored): ``v_discrete = Ts v``, so ``k_m = -k1 / Ts^2``,
+        ``c_m = -d / Ts``, ``b = b_discrete / Ts^2`` and likewise."""
+        h2 = Ts * Ts
+        return cls(
+            b=coef["b"] / h2, c_m=-coef["d"] / Ts, k_m=-coef["k1"] / h2, k2_m=-coef["k2"] / h2,
+            k3_m=-coef["k3"] / h2, a0=coef["c"] / h2,
+        )
+
+    def features(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """``Phi`` ``(..., 2, 6)`` (zero in the position row) and offset ``[v, 0]``."""
+        x, u = broadcast_leading(x, u)
+        y, v = x[..., 0], x[..., 1]
+        zero = torch.zeros_like(y)
+        row_v = torch.stack([u[..., 0], -v, -y, -y * y, -y * y * y, torch.ones_like(y)], dim=-1)
+        Phi = torch.stack([torch.zeros_like(row_v), row_v], dim=-2)
+        return Phi, torch.stack([v, zero], dim=-1)
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        # the same function as features() @ theta, in a few operations (the integrator's hot loop)
+        y, v = x[..., 0], x[..., 1]
+        acc = self.b * u[..., 0] - self.c_m * v - (self.k_m + (self.k2_m + self.k3_m * y) * y) * y + self.a0
+        return torch.stack(torch.broadcast_tensors(v, acc), dim=-1)
+
+    def physical(self) -> dict[str, float]:
+        """Mass ``m = 1 / b``, damping ``c``, stiffnesses ``k``, ``k2``, ``k3``, input offset ``u0``,
+        natural frequency ``f0 = sqrt(k / m) / 2 pi`` (Hz) and damping ratio ``zeta = c / (2 sqrt(k m))``."""
+        t = {name: float(getattr(self, name).detach()) for name in self.names}
+        m = 1.0 / t["b"]
+        out = dict(m=m, c=t["c_m"] * m, k=t["k_m"] * m, k2=t["k2_m"] * m, k3=t["k3_m"] * m, u0=t["a0"] * m)
+        if t["k_m"] > 0:
+            out["f0_hz"] = 1e3 * (t["k_m"] ** 0.5) / (2 * 3.141592653589793)
+            out["zeta"] = t["c_m"] / (2 * t["k_m"] ** 0.5)
+        return out
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{n}={float(getattr(self, n).detach()):.4g}" for n in self.names)

@@ -171,7 +171,7 @@ def test_warm_start_beats_cold_start(data):
         assert (info.f_action, info.g_action) == ("distilled", "fitted")
         assert info.f_error < 0.05  # the MLP imitates the fitted linear model
         est_warm = warm.fit(data.u, data.y)
-        est_cold = _neural_estimator(8).fit(data.u, data.y)
+        est_cold = _neural_estimator(8).set_params(first_stage=None).fit(data.u, data.y)  # the identity
         f, g = true_model(data)
         est_true = RobustNSSMEstimator(f, g, x0_mean=[0.0], n_iter=0, random_state=0).fit(data.u, data.y)
     ll_warm = est_warm.history_["log_likelihood"]
@@ -365,3 +365,27 @@ def test_simulation_warm_start_checks_its_arguments():
         simulation_warm_start(est, u, y, options={"horizon": 10})
     with pytest.raises(ValueError, match="x0_mean"):
         simulation_warm_start(RobustNSSMEstimator(MLPTransition(1, 1), _Position()), u, y)
+
+
+def test_first_stage_auto_trains_a_network_by_simulation_error():
+    """One first stage for networks: ``first_stage="auto"`` runs inside ``fit`` the stage that
+    ``simulation_warm_start`` runs outside it, and the start policy treats it as a physical one."""
+    from sklearn.base import clone
+
+    from torch_nssm.estimation.neural_first_stage import NeuralFirstStageReport
+
+    u, y, _ = _tanh_plant(200, 0, outliers=0.05)
+    est = RobustNSSMEstimator(
+        MLPTransition(1, 1, hidden=(8,), random_state=0), _Position(), x0_mean=[0.0], optimizer="adam",
+        max_iter_mstep=20, n_particles=50, n_iter=2, tol=0, random_state=0,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fitted = clone(est).fit(u, y)
+    stage = fitted.first_stage_
+    assert isinstance(stage, NeuralFirstStageReport) and stage.accepted
+    assert stage.explained > 0.9 and fitted.simulation_model_  # the start policy's simulation model
+    assert not torch.equal(fitted.f_.net[-1].weight, fitted.f.net[-1].weight)  # f was trained, in a copy
+    u_val, _, x_val = _tanh_plant(400, 1)
+    rmse = float(np.sqrt(np.mean((np.ravel(fitted.predict(u_val, x0=[0.0])) - x_val) ** 2)))
+    assert rmse < 0.08  # the untrained network (the random walk) is near 1

@@ -210,7 +210,7 @@ def _em_fixed_point(noise, r, mask, n_iter=3000, tol=1e-12):
         e_lam, e_log = noise.latent_expectations(z2, scale, slice(None))
         st = noise.statistics(r, W, e_lam, e_log, scale, slice(None))
         st = {k: v.sum(0) for k, v in st.items()}  # pooled over the one sequence
-        new = noise.updated(st, fit_Rv=True, fit_dof=True, dof_bounds=(0.1, 1000.0))
+        new = noise.updated(st, fit_Rv=True)
         change = max(float((new.dof / noise.dof - 1).abs().max()), float((new.Rv - noise.Rv).abs().max()))
         noise = new
         if change < tol:
@@ -275,7 +275,7 @@ def test_engine_statistics_with_known_states_match_the_family():
     np.testing.assert_allclose(st["scatter"].numpy(), (mask * lam * r0**2).sum((0, 1)), rtol=1e-9)
     np.testing.assert_allclose(st["n_obs"].numpy(), mask.sum((0, 1)))
     np.testing.assert_allclose(st["dof_c"].numpy(), (mask * (elog - lam)).sum((0, 1)), rtol=1e-9)
-    new = model.noise.updated(st, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0))
+    new = model.noise.updated(st, fit_Rv=True, fit_shape=False)
     assert torch.count_nonzero(new.Rv - torch.diag_embed(torch.diagonal(new.Rv))) == 0
     np.testing.assert_allclose(torch.diagonal(new.Rv).numpy(), st["scatter"].numpy() / mask.sum((0, 1)))
 
@@ -287,10 +287,10 @@ def test_updated_keeps_unobserved_component_and_flags():
         "n_obs": torch.tensor([4.0, 0.0, 3.0], dtype=DTYPE),
         "dof_c": torch.tensor([-5.0, 0.0, -3.3], dtype=DTYPE),
     }
-    new = noise.updated(st, fit_Rv=True, fit_dof=True, dof_bounds=(0.1, 1000.0))
+    new = noise.updated(st, fit_Rv=True)
     np.testing.assert_allclose(torch.diagonal(new.Rv).numpy(), [0.5, VAR[1], 2.0])
     assert float(new.dof[1]) == DOF[1]  # never observed: unchanged
-    same = noise.updated(st, fit_Rv=False, fit_dof=False, dof_bounds=(0.1, 1000.0))
+    same = noise.updated(st, fit_Rv=False, fit_shape=False)
     assert torch.equal(same.Rv, noise.Rv) and torch.equal(same.dof, noise.dof)
 
 

@@ -10,7 +10,7 @@ import torch
 
 from torch_nssm import RobustNSSMEstimator, fit_independent
 from torch_nssm.core.model import StateSpaceModel
-from torch_nssm.core.noise import get_noise_model
+from torch_nssm.core.noise import get_noise_model, noise_spec
 from torch_nssm.datasets import make_manipulator, make_paper_example
 from torch_nssm.datasets.paper import PaperObservation, PaperTransition
 from torch_nssm.estimation.acceleration import (
@@ -25,7 +25,7 @@ from torch_nssm.reproduce.manipulator_study import manipulator_estimator, manipu
 
 def _model(a: float, b: float, c: float) -> StateSpaceModel:
     t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731
-    noise = get_noise_model("gaussian").initial(t([[0.1]]), 5.0)
+    noise = noise_spec("gaussian").initial(t([[0.1]]))
     f, g = PaperTransition(a, b), PaperObservation(c)
     return StateSpaceModel(f, g, t([[0.1]]), noise, t([0.0]), t([[1.0]]))
 
@@ -85,7 +85,7 @@ def test_noise_extrapolation_jumps_to_the_limit_of_a_linearly_converging_em():
         spd(star["Rv"] + 0.6**k * d["Rv"]),
         np.exp(star["dof"] + 0.6**k * d["dof"]),
     )
-    ex = NoiseExtrapolation((0.1, 1000.0), n_obs=500)
+    ex = NoiseExtrapolation(n_obs=500)
     ex.start(at(0))
     assert ex.propose(at(1), rejected=False) is None  # two points: nothing yet
     jumped = ex.propose(at(2), rejected=False)
@@ -103,7 +103,7 @@ def test_noise_extrapolation_leaves_particle_noise_and_held_noise_alone():
     """Steps below half a complete-data standard error, steps that disagree in direction, a held
     (unchanged) Rw and an M-step that undid a module's step: no jump."""
     base = _model(0.9, 1.0, 1.0)
-    ex = NoiseExtrapolation((0.1, 1000.0), n_obs=500)  # least step: 0.5 * sqrt(2 / 500) = 0.032
+    ex = NoiseExtrapolation(n_obs=500)  # least step: 0.5 * sqrt(2 / 500) = 0.032
     small = [_noisy(base, [[1e-3]], [[0.05 * np.exp(0.01 * k)]], 2.0) for k in (0, 1, 1.5)]
     ex.start(small[0])
     assert ex.propose(small[1], False) is None and ex.propose(small[2], False) is None

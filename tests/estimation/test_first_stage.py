@@ -21,15 +21,23 @@ def _start(y, u):
     return est._initial_model(data, device), data
 
 
-@pytest.mark.parametrize("segment_length", [None, 50])
-def test_simulation_error_fit_recovers_the_dynamics_despite_outliers(segment_length):
+@pytest.mark.parametrize("windows", ["one", 50, "auto"])
+def test_simulation_error_fit_recovers_the_dynamics_despite_outliers(windows):
     """Noise-free simulation of the paper's system (10 % outliers uniform in [-5, 5]): the Cauchy
-    loss is not steered by the outliers, and the fitted model simulates the clean output."""
+    loss is not steered by the outliers, and the fitted model simulates the clean output; one
+    window, fixed windows of 50 samples (multiple shooting) or the growing windows."""
     d = make_paper_example(n_samples=300, outlier_fraction=0.1, random_state=2, Rw=1e-6)
     model, data = _start(d.y, d.u)
-    report = simulation_error_fit(model, data, segment_length=segment_length)
+    if windows == "one":
+        report = simulation_error_fit(model, data, horizons=None)
+    elif windows == "auto":
+        report = simulation_error_fit(model, data)
+        assert report.stages[-1].horizon == 300 or report.horizon_limit  # reached the record or said why
+        assert report.horizon == max(report.stages, key=lambda s: -s.free_run_scale).horizon
+    else:
+        report = simulation_error_fit(model, data, segment_length=windows)
     assert report.accepted and report.rmse_after < report.rmse_before
-    assert report.n_windows == (1 if segment_length is None else 6)
+    assert report.n_windows == {"one": 1, 50: 6, "auto": report.n_windows}[windows]
     assert abs(model.f.a.item() - 0.9) < 0.03 and abs(model.f.b.item() - 1.0) < 0.05
     assert abs(model.g.c.item() - 1.0) < 0.05
     assert report.first_states.shape == (report.n_windows, 1)
@@ -85,3 +93,74 @@ def test_fit_independent_runs_the_first_stage_per_data_set():
         fits = fit_independent(proto, [d.u for d in sets], [d.y for d in sets])
     assert all(f.first_stage_.accepted for f in fits)
     assert fits[0].first_stage_.rmse_after != fits[1].first_stage_.rmse_after
+
+
+def test_initial_horizon_follows_the_outputs_correlation_time():
+    """An AR(1) output with coefficient a has autocorrelation a^k: it falls below one half at
+    k = log(0.5) / log(a); the first windows are twice that (spikes removed first)."""
+    from torch_nssm.core.model import SequenceBatch
+    from torch_nssm.estimation.first_stage import initial_horizon
+
+    rng = np.random.default_rng(0)
+    for a in (0.9, 0.99):
+        y = np.zeros(20_000)
+        for k in range(1, y.size):
+            y[k] = a * y[k - 1] + rng.standard_normal()
+        spiky = y.copy()
+        spiky[rng.choice(y.size, 1000, replace=False)] += 50.0 * rng.standard_normal(1000)
+        lag = np.log(0.5) / np.log(a)
+        for values in (y, spiky):
+            t = torch.as_tensor(values).reshape(-1, 1, 1)
+            data = SequenceBatch(torch.zeros_like(t), t, torch.tensor([y.size]))
+            assert 0.7 * 2 * lag < initial_horizon(data, 1) < 1.4 * 2 * lag
+
+
+def test_stages_stop_where_the_simulation_diverges():
+    d = make_paper_example(n_samples=400, random_state=0, Rw=1e-6)
+    model, data = _start(d.y, d.u)
+    with torch.no_grad():
+        model.f.a.fill_(10.0)  # the simulation overflows after about 300 steps
+    model.f.a.requires_grad_(False)
+    report = simulation_error_fit(model, data, horizons=[10, 40, 400])
+    assert [s.horizon for s in report.stages] == [10, 40, 400]
+    assert report.stages[-1].status == "diverged"
+    assert "diverges over windows of 400 samples" in report.horizon_limit
+    assert report.horizon in (10, 40)
+
+
+class _Interrupting(PaperTransition):
+    """Raises KeyboardInterrupt (as Ctrl-C) after a number of calls."""
+
+    calls = 0
+    limit = 10**9
+
+    def forward(self, x, u):
+        type(self).calls += 1
+        if type(self).calls > type(self).limit:
+            type(self).limit = 10**9  # one Ctrl-C
+            raise KeyboardInterrupt
+        return super().forward(x, u)
+
+
+def test_ctrl_c_in_the_first_stage_keeps_its_best_stage_and_no_em_runs():
+    d = make_paper_example(n_samples=300, outlier_fraction=0.05, random_state=1, Rw=1e-6)
+    f = _Interrupting(0.5, 0.5)
+    _Interrupting.calls, _Interrupting.limit = 0, 10**9
+    est = RobustNSSMEstimator(f, PaperObservation(0.5), x0_mean=[0.0], n_particles=50, random_state=0)
+    model, data = _start(d.y, d.u)
+    full = simulation_error_fit(replace_modules(model, _Interrupting(0.5, 0.5)), data)
+    calls_per_run = _Interrupting.calls
+    # interrupt well into the run: after the first stages, before the last
+    _Interrupting.calls, _Interrupting.limit = 0, int(0.6 * calls_per_run)
+    with pytest.warns(RuntimeWarning, match="interrupted .* during the first stage"):
+        est.fit(d.u, d.y)
+    _Interrupting.limit = 10**9
+    assert est.first_stage_.interrupted and est.n_iter_ == 0
+    assert len(est.first_stage_.stages) < len(full.stages) + 1
+    assert np.isfinite(est.log_likelihood_)
+
+
+def replace_modules(model, f):
+    from dataclasses import replace
+
+    return replace(model, f=f)

@@ -362,7 +362,7 @@ def test_dof_update_recovers_known_dof():
         noise = noise.replace(dof=dof)
         e_lam, e_log = latent_scales(replace(model, noise=noise), data, filt)
         suff = noise_statistics(noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
-        new = noise.updated(suff, fit_Rv=False, fit_dof=True, dof_bounds=(0.1, 1000.0)).dof
+        new = noise.updated(suff, fit_Rv=False).dof
         if abs(float(new - dof)) < 1e-10:
             break
         dof = new
@@ -435,7 +435,7 @@ def test_measurement_noise_update_with_missing_components(linear_estep):
     missing part of each residual completed by its conditional mean under the old R."""
     sysm, model, data, est = linear_estep
     stats = noise_statistics(model.noise, [model.g], data, est)
-    Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv.numpy()
+    Rv = model.noise.updated(stats, fit_Rv=True, fit_shape=False).Rv.numpy()
     T, B, L, _ = est.filter.particles.shape
     with torch.no_grad():
         g = model.g(est.filter.particles, data.u.unsqueeze(2).expand(T, B, L, 1)).numpy()
@@ -483,7 +483,7 @@ def test_measurement_noise_update_recovers_R_with_known_states():
         e_lam, e_log = latent_scales(model, data, filt)
         assert torch.all(e_lam == 1.0)
         stats = noise_statistics(model.noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
-        Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv
+        Rv = model.noise.updated(stats, fit_Rv=True, fit_shape=False).Rv
         model = replace(model, noise=GaussianNoise(Rv))
     np.testing.assert_allclose(Rv.numpy(), R, atol=0.04)
 
@@ -503,7 +503,7 @@ def test_measurement_noise_update_is_positive_definite():
     filt, smooth = _known_states(model, data, torch.zeros(T, 1, 2, dtype=DTYPE))  # residuals = y
     e_lam, e_log = latent_scales(model, data, filt)
     stats = noise_statistics(model.noise, [model.g], data, EStepOutput(filt, smooth, e_lam, e_log))
-    Rv = model.noise.updated(stats, fit_Rv=True, fit_dof=False, dof_bounds=(0.1, 1000.0)).Rv
+    Rv = model.noise.updated(stats, fit_Rv=True, fit_shape=False).Rv
     assert torch.linalg.eigvalsh(Rv).min() > 0  # pairwise deletion gave eigenvalues (-7.7, 10.3)
 
 

@@ -237,7 +237,7 @@ def _paper_estep(noise: str = "student-t", p: int = 1, n: int = 80, missing: boo
     """A small model of the paper's kind (``p`` outputs) and one E-step of simulated data."""
     from torch_nssm.blocks.linear import LinearObservation
     from torch_nssm.core.model import StateSpaceModel
-    from torch_nssm.core.noise import get_noise_model
+    from torch_nssm.core.noise import noise_spec
     from torch_nssm.datasets.paper import PaperObservation, PaperTransition
     from torch_nssm.estimation.estep import EStepOptions, e_step
 
@@ -252,7 +252,7 @@ def _paper_estep(noise: str = "student-t", p: int = 1, n: int = 80, missing: boo
     g = PaperObservation(1.0) if p == 1 else LinearObservation(1, 1, p, C=np.linspace(1.0, 0.5, p)[:, None])
     Rv = t(np.diag(np.full(p, 0.1)) + 0.02 * (noise != "student-t-per-output") * (1 - np.eye(p)))
     model = StateSpaceModel(
-        PaperTransition(0.9, 1.0), g, t([[0.1]]), get_noise_model(noise).initial(Rv, 4.0), t([0.0]),
+        PaperTransition(0.9, 1.0), g, t([[0.1]]), noise_spec(noise, dof_init=4.0).initial(Rv), t([0.0]),
         t([[1.0]]),
     )
     est = e_step(model, data, EStepOptions(n_particles=50), torch.Generator().manual_seed(0))

@@ -30,6 +30,36 @@ def test_import_is_lazy():
     assert not {"matplotlib", "torch_nssm.reproduce", "torch_nssm.datasets"} & set(loaded), loaded
 
 
+def test_import_loads_no_plotting_scipy_or_dask():
+    """``import torch_nssm`` loads neither matplotlib, scipy, dask nor scikit-learn (public names
+    resolve on first use); the estimator's import loads scikit-learn's base (which loads scipy) but
+    not ``sklearn.metrics``, matplotlib nor dask, and neither does a fit (torch itself loads tqdm)."""
+    heavy = ("matplotlib", "scipy", "dask", "distributed", "sklearn", "sklearn.metrics")
+    code = (
+        "import json, sys, warnings\n"
+        f"heavy = {heavy!r}\n"
+        "loaded = lambda: [m for m in heavy if m in sys.modules]\n"
+        "import torch_nssm\n"
+        "package = loaded()\n"
+        "from torch_nssm import RobustNSSMEstimator\n"
+        "estimator = loaded()\n"
+        "from torch_nssm.datasets import make_paper_example\n"
+        "from torch_nssm.models import PaperObservation, PaperTransition\n"
+        "warnings.simplefilter('ignore')\n"
+        "d = make_paper_example(n_samples=40, random_state=0)\n"
+        "RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0], n_particles=10,\n"
+        "                    n_iter=1, first_stage=None).fit(d.u, d.y)\n"
+        "print(json.dumps([package, estimator, loaded()]))\n"
+    )
+    res = _run(code)
+    assert res.returncode == 0, res.stderr
+    package, estimator, fitted = json.loads(res.stdout.strip().splitlines()[-1])
+    assert package == []
+    assert "sklearn" in estimator  # the check sees what is loaded
+    for loaded in (estimator, fitted):
+        assert not {"matplotlib", "dask", "distributed", "sklearn.metrics"} & set(loaded), loaded
+
+
 def test_import_emits_no_warning():
     res = _run("import torch_nssm", "-W", "error")
     assert res.returncode == 0, res.stderr

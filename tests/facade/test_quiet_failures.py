@@ -246,7 +246,7 @@ def test_restarts_reach_the_right_basin_when_g_has_the_wrong_scale():
 def test_a_noise_model_that_absorbs_the_data_is_reported():
     """Model error instead of outliers: a g that cannot represent y makes the t noise collapse and
     down-weight a large share of the samples; the user is told, with what to do."""
-    from torch_nssm.estimator import _noise_absorbing_message
+    from torch_nssm.core.noise.student_t import absorbing_message as _noise_absorbing_message
 
     assert _noise_absorbing_message(1.5, np.full(100, 0.9)) is None  # the paper's 10 % outliers
     msg = _noise_absorbing_message(0.6, np.r_[np.full(50, 0.2), np.full(50, 0.9)])

@@ -9,6 +9,9 @@ gradient M-step.
 * :class:`MLPObservation`: ``g(x, u) = y_mean + y_scale * MLP([x_norm, u_norm])``.
 * :class:`GreyBoxTransition`: ``f(x, u) = physical(x, u) + out_scale * MLP([x_norm, u_norm])``,
   exactly ``physical`` when untrained.
+* :class:`MLPDerivative`: ``dx/dt = out_scale * MLP([x_norm, u_norm])``, the right-hand side of a
+  neural ODE (:class:`~torch_nssm.blocks.continuous.ContinuousTimeTransition` integrates it over a
+  sample).
 
 ``x_norm = (x - x_mean) / x_scale`` and likewise ``u_norm``; the means and scales are buffers
 (saved and moved with the module, not estimated): set them in the constructor or with
@@ -29,7 +32,7 @@ from .. import _validation as V
 from .._ops import broadcast_leading
 from .._stats import robust_scale_torch
 
-__all__ = ["MLPTransition", "MLPObservation", "GreyBoxTransition", "ACTIVATIONS"]
+__all__ = ["MLPTransition", "MLPObservation", "GreyBoxTransition", "MLPDerivative", "ACTIVATIONS"]
 
 #: Activation names accepted by the blocks (a ``nn.Module`` subclass or factory works too).
 ACTIVATIONS: dict[str, type[nn.Module]] = {
@@ -529,6 +532,91 @@ class GreyBoxTransition(_NeuralBlock):
         ref = self.x_mean
         pred = self.physical(xr.to(ref), ur.to(ref)).to(xr)
         self.out_scale.copy_(_mean_std(_as_rows(x_next, self.nx, "x_next") - pred)[1])
+        return self
+
+    def extra_repr(self) -> str:
+        return f"nx={self.nx}, nu={self.nu}, hidden={self.hidden}, activation={self.activation!r}"
+
+
+class MLPDerivative(_NeuralBlock):
+    """Neural ODE right-hand side ``dx/dt = out_scale * MLP([x_norm, u_norm])``.
+
+    The ``rhs`` of a :class:`~torch_nssm.blocks.continuous.ContinuousTimeTransition` (``f =
+    ContinuousTimeTransition(MLPDerivative(nx, nu), Ts)``).  As in :class:`MLPTransition`, the last
+    layer starts small, so the untrained derivative is near zero and the transition near ``x' = x``.
+
+    Parameters
+    ----------
+    nx, nu : int
+        State and input dimensions.
+    hidden : sequence of int, default=(32, 32)
+    activation : str or callable, default="tanh"
+    x_mean, x_scale, u_mean, u_scale : float or array-like, optional
+        Input normalisation (default 0 and 1).
+    out_scale : float or array-like of shape (nx,), optional
+        Scale of the derivative (default ``x_scale``: per unit of time).
+    last_layer_scale : float, default=1e-3
+    random_state : int, optional
+    dtype : torch.dtype, default=torch.float64
+    device : torch.device or str, optional
+
+    Attributes
+    ----------
+    net : nn.Sequential
+        The MLP, ``nx + nu -> nx``.
+    x_mean, x_scale, u_mean, u_scale, out_scale : Tensor
+        Buffers.
+    """
+
+    def __init__(
+        self,
+        nx: int,
+        nu: int,
+        hidden: Sequence[int] = (32, 32),
+        activation: Activation = "tanh",
+        *,
+        x_mean: ArrayLike = None,
+        x_scale: ArrayLike = None,
+        u_mean: ArrayLike = None,
+        u_scale: ArrayLike = None,
+        out_scale: ArrayLike = None,
+        last_layer_scale: float = 1e-3,
+        random_state: int | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        super().__init__(
+            nx, nu, x_mean=x_mean, x_scale=x_scale, u_mean=u_mean, u_scale=u_scale, dtype=dtype, device=device
+        )
+        self._add_step_network(hidden, activation, last_layer_scale, out_scale, random_state, dtype, device)
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        """``dx/dt``, shape ``(..., nx)``."""
+        return self.out_scale * self.net(self.normalised_input(x, u))
+
+    @torch.no_grad()
+    def fit_normalisation(self, x: ArrayLike, u: ArrayLike = None, dxdt: ArrayLike = None) -> MLPDerivative:
+        """Set the normalisation buffers from data (call it before fitting).
+
+        Parameters
+        ----------
+        x : array-like of shape (..., nx)
+            Representative states; NaN is ignored.
+        u : array-like of shape (..., nu), optional
+            Representative inputs (``None`` keeps ``u_mean``, ``u_scale``).
+        dxdt : array-like of shape (..., nx), optional
+            Derivatives at ``x`` (e.g. one-sample increments over ``Ts``): ``out_scale`` becomes
+            their standard deviation.  Otherwise ``out_scale = x_scale``.
+
+        Returns
+        -------
+        self
+        """
+        self._set_input_normalisation(x, u)
+        if dxdt is None:
+            self.out_scale.copy_(self.x_scale)
+        else:
+            self.out_scale.copy_(_mean_std(_as_rows(dxdt, self.nx, "dxdt"))[1])
         return self
 
     def extra_repr(self) -> str:

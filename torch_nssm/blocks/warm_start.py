@@ -30,6 +30,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any, Union
 
 import numpy as np
@@ -39,14 +40,18 @@ from torch import Tensor, nn
 
 from .. import _validation as V
 from .._stats import robust_scale
-from ..core.noise import NOISE_MODELS
+from ..core.noise import noise_spec, restart_parameters
 from ..estimation.neural_first_stage import (
     NeuralFirstStageOptions,
     NeuralFirstStageReport,
+    default_options,
+    holds_network,
     neural_first_stage,
     start_noise_levels,
 )
+from ..estimation.start import stage_seed
 from ..estimator import RobustNSSMEstimator
+from .continuous import ContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import GreyBoxTransition, MLPObservation, MLPTransition
 
@@ -137,21 +142,7 @@ def distill(
         raise ValueError("module has no parameters with requires_grad=True to train")
     ref_t = next(iter(list(module.parameters()) + list(module.buffers())))
     kw = dict(dtype=ref_t.dtype, device=ref_t.device)
-    xt = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, Tensor) else x).to(**kw)
-    if xt.dim() != 2 or xt.shape[0] == 0:
-        raise ValueError(f"x must have shape (M, nx) with M >= 1, got shape {tuple(xt.shape)}")
-    if u is None:
-        ut = xt.new_zeros(xt.shape[0], 0)
-    else:
-        ut = torch.as_tensor(np.asarray(u, dtype=np.float64) if not isinstance(u, Tensor) else u).to(**kw)
-        if ut.dim() == 1:
-            ut = ut.unsqueeze(-1)
-        if ut.dim() != 2 or ut.shape[0] != xt.shape[0]:
-            raise ValueError(
-                f"u must have shape ({xt.shape[0]}, nu) like x's rows, got shape {tuple(ut.shape)}"
-            )
-    if not (bool(torch.isfinite(xt).all()) and bool(torch.isfinite(ut).all())):
-        raise ValueError("x and u must be finite")
+    xt, ut = _distillation_rows(x, u, kw)
     target = _target(copy.deepcopy(reference).to(**kw), xt, ut)
     with torch.no_grad():
         start = module(xt, ut)
@@ -160,14 +151,7 @@ def distill(
             "module and reference must return the same shape, "
             f"got {tuple(start.shape)} and {tuple(target.shape)}"
         )
-    if scale is None:
-        base = target if baseline is None else target - torch.as_tensor(np.asarray(baseline)).to(target)
-        s = base.std(dim=0) if base.shape[0] > 1 else base.abs().mean(dim=0)
-        s = torch.where(torch.isfinite(s) & (s > 1e-12), s, torch.ones_like(s))
-    else:
-        s = torch.as_tensor(np.asarray(scale, dtype=np.float64)).to(target).expand(target.shape[-1]).clone()
-        if not bool((s > 0).all()):
-            raise ValueError("scale must be positive")
+    s = _output_scale(target, baseline, scale)
 
     opt = torch.optim.LBFGS(
         params,
@@ -194,6 +178,39 @@ def distill(
         module.load_state_dict(backup)
         loss = loss0
     return math.sqrt(loss)
+
+
+def _distillation_rows(x, u, kw: dict) -> tuple[Tensor, Tensor]:
+    """``x`` ``(M, nx)`` and ``u`` ``(M, nu)`` (``None``: no input) as finite tensors."""
+    xt = torch.as_tensor(np.asarray(x, dtype=np.float64) if not isinstance(x, Tensor) else x).to(**kw)
+    if xt.dim() != 2 or xt.shape[0] == 0:
+        raise ValueError(f"x must have shape (M, nx) with M >= 1, got shape {tuple(xt.shape)}")
+    if u is None:
+        ut = xt.new_zeros(xt.shape[0], 0)
+    else:
+        ut = torch.as_tensor(np.asarray(u, dtype=np.float64) if not isinstance(u, Tensor) else u).to(**kw)
+        if ut.dim() == 1:
+            ut = ut.unsqueeze(-1)
+        if ut.dim() != 2 or ut.shape[0] != xt.shape[0]:
+            raise ValueError(
+                f"u must have shape ({xt.shape[0]}, nu) like x's rows, got shape {tuple(ut.shape)}"
+            )
+    if not (bool(torch.isfinite(xt).all()) and bool(torch.isfinite(ut).all())):
+        raise ValueError("x and u must be finite")
+    return xt, ut
+
+
+def _output_scale(target: Tensor, baseline, scale) -> Tensor:
+    """The scale of each output of the distillation loss: ``scale``, or the spread of the targets
+    (less ``baseline``)."""
+    if scale is None:
+        base = target if baseline is None else target - torch.as_tensor(np.asarray(baseline)).to(target)
+        s = base.std(dim=0) if base.shape[0] > 1 else base.abs().mean(dim=0)
+        return torch.where(torch.isfinite(s) & (s > 1e-12), s, torch.ones_like(s))
+    s = torch.as_tensor(np.asarray(scale, dtype=np.float64)).to(target).expand(target.shape[-1]).clone()
+    if not bool((s > 0).all()):
+        raise ValueError("scale must be positive")
+    return s
 
 
 # ---------------------------------------------------------------------- the warm start
@@ -311,7 +328,7 @@ def warm_start_estimator(
         The reference observation.  Default: ``g`` itself when it has a closed-form M-step or no
         free parameters; a :class:`LinearObservation` (scaled by a robust spread of ``y``) for an
         :class:`~torch_nssm.neural.MLPObservation`; ``g`` itself otherwise.
-    noise : {"student-t", "gaussian"}, optional
+    noise : str or noise specification, optional
         Measurement-noise model of the reference fit; default the estimator's.
     n_iter : int, default=20
         EM iterations of the reference fit.
@@ -332,7 +349,9 @@ def warm_start_estimator(
     -------
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
-        ``Rv_init`` (and ``dof_init`` for Student-t noise) set from the reference; unfitted.
+        ``Rv_init`` and the noise family's other initial values (when the reference fitted the
+        estimator's family) set from the reference, and ``first_stage=None`` when ``f`` or ``g``
+        holds a network (this is its start); unfitted.
     WarmStartInfo
         Only with ``return_info=True``.
 
@@ -350,20 +369,7 @@ def warm_start_estimator(
     (``init_jitter``), which throws the warm start away.
     """
     t0 = time.perf_counter()
-    if not isinstance(estimator, RobustNSSMEstimator):
-        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
-    for name, ref in (("reference_f", reference_f), ("reference_g", reference_g)):
-        if ref is not None and not isinstance(ref, nn.Module):
-            raise TypeError(
-                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
-            )
-    if noise is not None:
-        V.check_choice(noise, "noise", sorted(NOISE_MODELS))
-    V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
-    if n_particles is not None:
-        V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
-    V.check_positive(n_jitter, "n_jitter", integer=True, minimum=0, inclusive=True)
-    V.check_positive(distill_iter, "distill_iter", integer=True, minimum=1, inclusive=True)
+    _check_arguments(estimator, reference_f, reference_g, noise, n_iter, n_particles, n_jitter, distill_iter)
     if not isinstance(return_info, (bool, np.bool_)):
         raise TypeError(f"return_info must be True or False, got {return_info!r}")
     f, g = estimator.f, estimator.g
@@ -378,21 +384,37 @@ def warm_start_estimator(
     seed = estimator.random_state if random_state is None else random_state
 
     # 1. the reference model
-    if reference_f is not None:
-        ref_f, f_action = reference_f, "distilled" if _has_free_parameters(f) else "kept"
-    elif isinstance(f, GreyBoxTransition):
-        ref_f, f_action = copy.deepcopy(f.physical), "physical"
-    elif _cheap(f):
-        ref_f, f_action = f, "fitted"
-    else:
-        ref_f, f_action = LinearTransition(nx, nu, dtype=estimator.dtype), "distilled"
-    if reference_g is not None:
-        ref_g, g_action = reference_g, "distilled" if _has_free_parameters(g) else "kept"
-    elif isinstance(g, MLPObservation):
-        ref_g, g_action = _default_reference_g(nx, nu, ys), "distilled"
-    else:
-        ref_g, g_action = g, "fitted"
-    reference = clone(estimator).set_params(
+    (ref_f, f_action), (ref_g, g_action) = _references(estimator, reference_f, reference_g, nx, nu, ys)
+    reference = _reference_estimator(estimator, ref_f, ref_g, noise, n_iter, n_particles, seed)
+    reference.fit(u, y)
+
+    # 2. smoothed states: where the network must be right
+    sm = reference.smooth(u, y)
+    sms = sm if multi else [sm]
+    (x_now, x_next, u_now), X, U = _training_rows(reference, sms, us, n_jitter, seed)
+
+    # 3. the modules of the real fit
+    f_new, f_error = _transition(f, f_action, reference, x_now, u_now, x_next, X, U, distill_iter)
+    g_new, g_error = _observation(g, g_action, reference, X, U, ys, distill_iter)
+
+    warm = _warm(estimator, reference, f_new, g_new)
+    if not return_info:
+        return warm
+    info = WarmStartInfo(
+        reference=reference,
+        f_error=f_error,
+        g_error=g_error,
+        f_action=f_action,
+        g_action=g_action,
+        n_rows=int(X.shape[0]),
+        seconds=time.perf_counter() - t0,
+    )
+    return warm, info
+
+
+def _reference_estimator(estimator, ref_f, ref_g, noise, n_iter: int, n_particles, seed):
+    """The quick fit of the reference modules: ``estimator``'s settings, plain EM from one start."""
+    return clone(estimator).set_params(
         f=ref_f,
         g=ref_g,
         noise=estimator.noise if noise is None else noise,
@@ -408,11 +430,68 @@ def warm_start_estimator(
         random_state=seed,
         verbose=0,
     )
-    reference.fit(u, y)
 
-    # 2. smoothed states: where the network must be right
-    sm = reference.smooth(u, y)
-    sms = sm if multi else [sm]
+
+def _warm(estimator, reference, f_new, g_new):
+    """``estimator`` set to start from the new modules and the reference's fitted noise and prior."""
+    params: dict[str, Any] = dict(
+        f=f_new,
+        g=g_new,
+        x0_mean=reference.x0_mean_.copy(),
+        x0_cov=reference.x0_cov_.copy(),
+        Rw_init=reference.Rw_.copy(),
+        Rv_init=reference.Rv_.copy(),
+    )
+    fitted = reference._fitted_noise()
+    if fitted.name == estimator._noise_spec().name:  # the reference fitted the estimator's family
+        params.update(restart_parameters(estimator.noise, fitted))
+    if holds_network(SimpleNamespace(f=f_new, g=g_new)):
+        params["first_stage"] = None  # this is the network's start: no neural first stage after it
+    return clone(estimator).set_params(**params)
+
+
+def _check_arguments(estimator, reference_f, reference_g, noise, n_iter, n_particles, n_jitter, distill_iter):
+    if not isinstance(estimator, RobustNSSMEstimator):
+        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
+    for name, ref in (("reference_f", reference_f), ("reference_g", reference_g)):
+        if ref is not None and not isinstance(ref, nn.Module):
+            raise TypeError(
+                f"{name} must be a torch.nn.Module called as {name}(x, u), got {type(ref).__name__}"
+            )
+    if noise is not None:
+        noise_spec(noise)
+    V.check_positive(n_iter, "n_iter", integer=True, minimum=1, inclusive=True)
+    if n_particles is not None:
+        V.check_positive(n_particles, "n_particles", integer=True, minimum=2, inclusive=True)
+    V.check_positive(n_jitter, "n_jitter", integer=True, minimum=0, inclusive=True)
+    V.check_positive(distill_iter, "distill_iter", integer=True, minimum=1, inclusive=True)
+
+
+def _references(estimator, reference_f, reference_g, nx: int, nu: int, ys) -> tuple:
+    """The reference modules of the quick fit and what becomes of ``f`` and ``g`` (``"kept"``,
+    ``"physical"``, ``"fitted"``, ``"distilled"``): ``((ref_f, f_action), (ref_g, g_action))``."""
+    f, g = estimator.f, estimator.g
+    if reference_f is not None:
+        ref_f, f_action = reference_f, "distilled" if _has_free_parameters(f) else "kept"
+    elif isinstance(f, GreyBoxTransition):
+        ref_f, f_action = copy.deepcopy(f.physical), "physical"
+    elif _cheap(f):
+        ref_f, f_action = f, "fitted"
+    else:
+        ref_f, f_action = LinearTransition(nx, nu, dtype=estimator.dtype), "distilled"
+    if reference_g is not None:
+        ref_g, g_action = reference_g, "distilled" if _has_free_parameters(g) else "kept"
+    elif isinstance(g, MLPObservation):
+        ref_g, g_action = _default_reference_g(nx, nu, ys), "distilled"
+    else:
+        ref_g, g_action = g, "fitted"
+    return (ref_f, f_action), (ref_g, g_action)
+
+
+def _training_rows(reference, sms: list, us: list, n_jitter: int, seed) -> tuple:
+    """From the reference's smoothed states ``sms``: the transitions ``(x_now, x_next, u_now)``,
+    and the rows ``X``, ``U`` where the modules are distilled (the smoothed means and ``n_jitter``
+    copies jittered by their spread plus the process noise)."""
     rng = np.random.default_rng(
         None if seed is None or not isinstance(seed, (int, np.integer)) else int(seed)
     )
@@ -435,51 +514,37 @@ def warm_start_estimator(
         )
         rows_u.append(rows_u[0])
     X, U = np.concatenate(rows_x, axis=0), np.concatenate(rows_u, axis=0)
+    return (x_now, x_next, u_now), X, U
 
-    # 3. the modules of the real fit
+
+def _transition(f, action: str, reference, x_now, u_now, x_next, X, U, distill_iter: int) -> tuple:
+    """The ``f`` of the real fit and its distillation error (``None`` if not distilled)."""
     f_new = copy.deepcopy(f)
     f_error: float | None = None
-    if f_action == "fitted":
+    if action == "fitted":
         f_new = copy.deepcopy(reference.f_)
-    elif f_action == "physical":
+    elif action == "physical":
         f_new.physical.load_state_dict(reference.f_.state_dict())
         f_new.fit_normalisation(x_now, u_now, x_next=x_next)
-    elif f_action == "distilled":
-        if isinstance(f_new, (MLPTransition, GreyBoxTransition)):
+    elif action == "distilled":
+        neural_ode = isinstance(f_new, ContinuousTimeTransition) and hasattr(f_new.rhs, "fit_normalisation")
+        if isinstance(f_new, (MLPTransition, GreyBoxTransition)) or neural_ode:
             f_new.fit_normalisation(x_now, u_now, x_next=x_next)
         f_error = distill(f_new, reference.f_, X, U, baseline=X, max_iter=distill_iter)
+    return f_new, f_error
+
+
+def _observation(g, action: str, reference, X, U, ys, distill_iter: int) -> tuple:
+    """The ``g`` of the real fit and its distillation error (``None`` if not distilled)."""
     g_new = copy.deepcopy(g)
     g_error: float | None = None
-    if g_action == "fitted":
+    if action == "fitted":
         g_new = copy.deepcopy(reference.g_)
-    elif g_action == "distilled":
+    elif action == "distilled":
         if isinstance(g_new, MLPObservation):
             g_new.fit_normalisation(X, U if g_new.nu > 0 else None, y=np.concatenate(ys, axis=0))
         g_error = distill(g_new, reference.g_, X, U, max_iter=distill_iter)
-
-    params: dict[str, Any] = dict(
-        f=f_new,
-        g=g_new,
-        x0_mean=reference.x0_mean_.copy(),
-        x0_cov=reference.x0_cov_.copy(),
-        Rw_init=reference.Rw_.copy(),
-        Rv_init=reference.Rv_.copy(),
-    )
-    if estimator.noise == "student-t" and math.isfinite(reference.dof_):
-        params["dof_init"] = float(reference.dof_)
-    warm = clone(estimator).set_params(**params)
-    if not return_info:
-        return warm
-    info = WarmStartInfo(
-        reference=reference,
-        f_error=f_error,
-        g_error=g_error,
-        f_action=f_action,
-        g_action=g_action,
-        n_rows=int(X.shape[0]),
-        seconds=time.perf_counter() - t0,
-    )
-    return warm, info
+    return g_new, g_error
 
 
 # ---------------------------------------------------------------------- the simulation-error start
@@ -509,8 +574,9 @@ def simulation_warm_start(
     y : array-like of shape (N,) or (N, p), or list of them
         Outputs (NaN: missing).
     options : NeuralFirstStageOptions, optional
-        Settings of the training (window length, iterations, loss...).  By default the robust
-        (Cauchy) loss, or least squares when ``estimator.noise == "gaussian"``.
+        Settings of the training (window length, iterations, loss...).  By default those of
+        ``first_stage="auto"``: the robust (Cauchy) loss, or least squares for Gaussian noise
+        (:func:`~torch_nssm.estimation.neural_first_stage.default_options`).
     return_report : bool, default=False
         Also return the :class:`~torch_nssm.estimation.neural_first_stage.NeuralFirstStageReport`.
 
@@ -544,7 +610,7 @@ def simulation_warm_start(
     if not isinstance(return_report, (bool, np.bool_)):
         raise TypeError(f"return_report must be True or False, got {return_report!r}")
     if options is None:
-        options = NeuralFirstStageOptions(loss="squared" if estimator.noise == "gaussian" else "cauchy")
+        options = default_options(estimator._noise_spec().name)
     elif not isinstance(options, NeuralFirstStageOptions):
         raise TypeError(f"options must be a NeuralFirstStageOptions, got {type(options).__name__}")
     if estimator.x0_mean is None:
@@ -552,8 +618,8 @@ def simulation_warm_start(
     device = estimator._check_params()
     data, _ = estimator._batch(u, y, device, fitted=False)
     model = estimator._initial_model(data, device)
-    seed = estimator.random_state if isinstance(estimator.random_state, (int, np.integer)) else 0
-    report = neural_first_stage(model, data, options, generator=torch.Generator().manual_seed(int(seed)))
+    generator = torch.Generator().manual_seed(stage_seed(estimator.random_state))
+    report = neural_first_stage(model, data, options, generator=generator)
     params: dict[str, Any] = dict(f=model.f, g=model.g, first_stage=None)
     if report.accepted:
         Rw, Rv = start_noise_levels(model, data, report.first_states)

@@ -10,6 +10,8 @@ Every generator draws from ``np.random.default_rng(random_state)`` and returns a
   :func:`make_manipulator` and its constants and physics.
 * :mod:`~torch_nssm.datasets.two_sensors` -- a 2-output linear system whose first sensor
   glitches: :func:`make_two_sensor_example` (the per-output noise's example).
+* :mod:`~torch_nssm.datasets.pendulum` -- a torque-driven pendulum simulated in continuous time:
+  :func:`make_continuous_pendulum` (the continuous-time models' example).
 
 The suite of plants (``benchmarks/real_records.py`` fits them with the defaults and baselines),
 each generator returning a :class:`PlantData` with its validation record, each module with the
@@ -49,6 +51,7 @@ from .bouc_wen import (
     bouc_wen_model,
     make_bouc_wen,
 )
+from .continuous_pendulum import CT_PENDULUM_PARAMS, CT_PENDULUM_TS, make_continuous_pendulum
 from .manipulator import (
     MANIPULATOR_ALPHA3,
     MANIPULATOR_ALPHA10,
@@ -103,6 +106,9 @@ from .wiener_hammerstein import (
 
 __all__ = [
     "make_two_sensor_example",
+    "make_continuous_pendulum",
+    "CT_PENDULUM_PARAMS",
+    "CT_PENDULUM_TS",
     "SimulatedData",
     "ManipulatorConstants",
     "make_paper_example",

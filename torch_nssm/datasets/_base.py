@@ -9,7 +9,6 @@ is True.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Union
@@ -18,9 +17,13 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ..core.noise import NOISE_MODELS, noise_spec
+from ..core.noise.base import psd_sqrt
+
 __all__ = ["SimulatedData"]
 
-NOISE_KINDS = ("gaussian", "student-t")
+#: The measurement-noise families a simulated record can have (those registered with the package).
+NOISE_KINDS = tuple(NOISE_MODELS)
 
 ArrayLike = Union[float, Sequence[float], Sequence[Sequence[float]], np.ndarray]
 
@@ -91,24 +94,18 @@ class SimulatedData:
 # --------------------------------------------------------------------------------------------
 
 
-def _cov_sqrt(cov: np.ndarray) -> np.ndarray:
-    """A matrix ``S`` with ``S S^T = cov`` (works for singular PSD matrices)."""
-    vals, vecs = np.linalg.eigh(cov)
-    return vecs * np.sqrt(np.clip(vals, 0.0, None))
+#: A matrix ``S`` with ``S S^T = cov`` (works for singular PSD matrices).
+_cov_sqrt = psd_sqrt
 
 
-def _measurement_noise(rng: np.random.Generator, n: int, cov: np.ndarray, dof: float) -> np.ndarray:
-    """``n`` draws of ``St(0, cov, dof)`` (Gaussian when ``dof`` is inf), shape (n, p).
-
-    Uses the scale mixture ``v | lam ~ N(0, cov / lam)``, ``lam ~ Gamma(dof/2, rate dof/2)``,
-    with one ``lam`` per sample (a multivariate t).
-    """
-    p = cov.shape[0]
-    z = rng.standard_normal((n, p)) @ _cov_sqrt(cov).T
-    if math.isinf(dof):
-        return z
-    lam = rng.gamma(shape=dof / 2.0, scale=2.0 / dof, size=n)
-    return z / np.sqrt(lam)[:, None]
+def _measurement_noise(
+    rng: np.random.Generator, n: int, cov: np.ndarray, noise: str, **shortcuts
+) -> np.ndarray:
+    """``n`` draws (shape ``(n, p)``) of the measurement noise ``noise`` (a registered family, with
+    the estimator's shortcut parameters ``shortcuts`` for its values, e.g. ``dof_init``) of scale
+    ``cov``, by the family's sampler from the stream ``rng``."""
+    model = noise_spec(noise, **shortcuts).initial(torch.as_tensor(np.asarray(cov, dtype=np.float64)))
+    return model.sample((n,), rng).numpy()
 
 
 def _add_outliers(

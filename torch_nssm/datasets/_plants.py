@@ -42,7 +42,7 @@ class PlantData(SimulatedData):
     u, y, x, y_clean, outlier_mask, params, name
         As :class:`SimulatedData`: ``y`` has the gross outliers, ``y_clean`` the measurement noise
         only, ``x`` the true states (process noise included).  ``params`` holds the true physical
-        parameters (as in the plant's ``*_TRUE``), ``Rw``, ``Rv`` (nested lists), ``dof`` (inf),
+        parameters (as in the plant's ``*_TRUE``), ``Rw``, ``Rv`` (nested lists), ``noise`` ("gaussian"),
         ``dt``, ``x0`` and the generator's settings.
     y_true : ndarray, shape (N, p)
         The noise-free measurement ``g(x_k, u_k)`` of the true states: what a free run is scored
@@ -208,7 +208,7 @@ def record(
 
 def noise_params(Rw: np.ndarray, Rv: np.ndarray) -> dict[str, Any]:
     """The noise entries of ``params``: ``Rw``, ``Rv`` as nested lists (diagonal), Gaussian."""
-    return {"Rw": np.diag(Rw).tolist(), "Rv": np.diag(Rv).tolist(), "dof": math.inf, "noise": "gaussian"}
+    return {"Rw": np.diag(Rw).tolist(), "Rv": np.diag(Rv).tolist(), "noise": "gaussian"}
 
 
 def scalar_parameters(module: nn.Module, values: dict[str, float], dtype: torch.dtype, device) -> None:

@@ -294,9 +294,8 @@ def make_manipulator(
     column is ``u_k = F(t_k)``, ``t_k = k dt``, ``F(t) = 10 sin(0.02 pi t)`` N.  State
     ``x = [dphi1, dphi2, phi1, phi2]``; ``x_{k+1} = (I + dt A(t_k; theta)) x_k + w_k`` (eq. 54)
     with ``theta1, theta2`` in the lower-left block of ``A``; output ``y_k = [phi1, phi2] + v_k``
-    (eq. 55).  The physical constants are our choice (see :class:`ManipulatorConstants` and the
-    ``MANIPULATOR_*`` module constants).  A ``RuntimeWarning`` is issued when the Euler step is
-    unstable (spectral radius above 1) for some force in the record.
+    (eq. 55).  The physical constants are our choice (:class:`ManipulatorConstants`, the
+    ``MANIPULATOR_*`` constants).  A ``RuntimeWarning`` says when the Euler step is unstable.
 
     Outliers are added to both angles of the chosen samples.
 
@@ -341,16 +340,14 @@ def make_manipulator(
     fraction = V.check_real(outlier_fraction, "outlier_fraction", low=0.0, high=1.0, high_open=True)
     rng_out = V.check_pair(outlier_range, "outlier_range")
     dt = V.check_real(dt, "dt", low=0.0, low_open=True)
-    try:
-        th = tuple(float(t) for t in theta)
-    except (TypeError, ValueError):
-        raise ValueError(f"theta must be a pair of numbers, got {theta!r}") from None
-    if len(th) != 2 or not all(math.isfinite(t) for t in th):
-        raise ValueError(f"theta must be a pair of finite numbers, got {theta!r}")
+    th = _check_theta(theta)
     Rw_m = V.check_covariance_array(Rw, "Rw", 4)
     Rv_m = V.check_covariance_array(Rv, "Rv", 2)
     noise = V.check_choice(noise, "noise", NOISE_KINDS)
-    nu_dof = math.inf if noise == "gaussian" else V.check_real(dof, "dof", low=0.0, low_open=True)
+    nu_dof = (
+        math.inf if noise == "gaussian"
+        else V.check_real(dof, "dof", low=0.0, high=math.inf, low_open=True, high_open=True)
+    )
     m0 = V.check_vector_array(x0_mean, "x0_mean", 4)
     P0 = V.check_covariance_array(x0_cov, "x0_cov", 4)
     if constants is None:
@@ -360,23 +357,10 @@ def make_manipulator(
 
     t = dt * np.arange(n)
     force = manipulator_force(t, constants)
-    rho = float(np.abs(np.linalg.eigvals(manipulator_transition_matrix(force, dt, th, constants))).max())
-    if rho > 1.0:
-        warnings.warn(
-            f"the forward-Euler step is unstable for this record (spectral radius {rho:.3f} > 1); "
-            "reduce dt or increase the damping",
-            RuntimeWarning,
-            stacklevel=2,
-        )
-
+    rho = _euler_radius(force, dt, th, constants)
     rng = np.random.default_rng(random_state)
-    blocks = constants.continuous_blocks()
-    x = np.empty((n, 4))
-    x[0] = m0 + _cov_sqrt(P0) @ rng.standard_normal(4)
-    w = rng.standard_normal((n, 4)) @ _cov_sqrt(Rw_m).T
-    for k in range(n - 1):
-        x[k + 1] = _manipulator_mean(x[k], force[k], dt, th, blocks) + w[k]
-    v = _measurement_noise(rng, n, Rv_m, nu_dof)
+    x = _states(rng, n, m0, P0, Rw_m, force, dt, th, constants)
+    v = _measurement_noise(rng, n, Rv_m, noise, dof_init=nu_dof)
     y_clean = x[:, 2:] + v
     y, mask = _add_outliers(rng, y_clean, fraction, rng_out)
     params = {
@@ -404,6 +388,40 @@ def make_manipulator(
         params=params,
         name="manipulator",
     )
+
+
+def _check_theta(theta) -> tuple[float, float]:
+    try:
+        th = tuple(float(t) for t in theta)
+    except (TypeError, ValueError):
+        raise ValueError(f"theta must be a pair of numbers, got {theta!r}") from None
+    if len(th) != 2 or not all(math.isfinite(t) for t in th):
+        raise ValueError(f"theta must be a pair of finite numbers, got {theta!r}")
+    return th
+
+
+def _euler_radius(force: np.ndarray, dt: float, th, constants: ManipulatorConstants) -> float:
+    """The largest spectral radius of the forward-Euler step over the record (a warning above 1)."""
+    rho = float(np.abs(np.linalg.eigvals(manipulator_transition_matrix(force, dt, th, constants))).max())
+    if rho > 1.0:
+        warnings.warn(
+            f"the forward-Euler step is unstable for this record (spectral radius {rho:.3f} > 1); "
+            "reduce dt or increase the damping",
+            RuntimeWarning,
+            stacklevel=3,
+        )
+    return rho
+
+
+def _states(rng, n: int, m0, P0, Rw_m, force, dt: float, th, constants: ManipulatorConstants) -> np.ndarray:
+    """The simulated states ``(n, 4)``: the first from the prior, then the Euler steps plus noise."""
+    blocks = constants.continuous_blocks()
+    x = np.empty((n, 4))
+    x[0] = m0 + _cov_sqrt(P0) @ rng.standard_normal(4)
+    w = rng.standard_normal((n, 4)) @ _cov_sqrt(Rw_m).T
+    for k in range(n - 1):
+        x[k + 1] = _manipulator_mean(x[k], force[k], dt, th, blocks) + w[k]
+    return x
 
 
 # --------------------------------------------------------------------------------------------

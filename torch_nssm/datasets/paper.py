@@ -60,7 +60,10 @@ def _simulate_paper_system(
     Rw = V.check_real(Rw, "Rw", low=0.0)
     Rv = V.check_real(Rv, "Rv", low=0.0)
     input_std = V.check_real(input_std, "input_std", low=0.0)
-    nu_dof = math.inf if noise == "gaussian" else V.check_real(dof, "dof", low=0.0, low_open=True)
+    nu_dof = (
+        math.inf if noise == "gaussian"
+        else V.check_real(dof, "dof", low=0.0, high=math.inf, low_open=True, high_open=True)
+    )
 
     rng = np.random.default_rng(random_state)
     x0 = rng.normal(0.0, math.sqrt(PAPER_X0_COV))
@@ -70,7 +73,7 @@ def _simulate_paper_system(
     x[0] = x0
     for k in range(n - 1):
         x[k + 1] = a * x[k] + b * u[k] + w[k]
-    v = _measurement_noise(rng, n, np.array([[Rv]]), nu_dof)[:, 0]
+    v = _measurement_noise(rng, n, np.array([[Rv]]), noise, dof_init=nu_dof)[:, 0]
     y_clean = (c * np.cos(x) + v)[:, None]
     y, mask = _add_outliers(rng, y_clean, fraction, rng_out)
     params = {

@@ -59,8 +59,9 @@ TANKS_TRUE: dict[str, float] = {
     "k1": 0.006, "k2": 0.0055, "k3": 0.006, "k4": 0.003, "k5": 0.5, "h1_max": 10.0, "y_offset": 0.4,
 }
 #: The physically sized start: ``k1`` x 1.4, ``k2`` x 0.6, ``k3`` x 1.3, ``k4`` x 0.7, ``k5`` x 0.5,
-#: ``h1_max`` x 0.7 (a start with the tank higher than the levels reached would never overflow, and
-#: its gradient would not see ``h1_max`` or ``k5``), ``y_offset`` x 1.5.
+#: ``h1_max`` x 0.7, ``y_offset`` x 1.5.  More outflow and less pump lower the start's upper levels
+#: about 4 times (at most 5.1 cm under 9 V): the start never overflows its 7 cm, so its gradient
+#: does not see ``h1_max`` or ``k5``, and its lower level is about 3 times too low.
 TANKS_START: dict[str, float] = {
     "k1": 0.0084, "k2": 0.0033, "k3": 0.0078, "k4": 0.0021, "k5": 0.25, "h1_max": 7.0, "y_offset": 0.6,
 }

@@ -64,7 +64,7 @@ WH_START: dict[str, float] = {
 }
 #: Process-noise variances of the four states per step.
 WH_RW: tuple[float, ...] = (1e-5, 1e-5, 1e-5, 1e-5)
-#: Measurement-noise variance of ``y`` (s.d. 0.005, about 1.5 % of the output's s.d.).
+#: Measurement-noise variance of ``y`` (s.d. 0.005, about 1 % of the output's s.d.).
 WH_RV: float = 2.5e-5
 #: Input: Gaussian noise band-limited to this band (cycles per sample), s.d.
 WH_INPUT_BAND: tuple[float, float] = (0.0, 0.2)
@@ -197,7 +197,7 @@ def make_wiener_hammerstein(
 
     Both records start at rest under ``u = 0`` (:func:`wiener_hammerstein_equilibrium`, which a user
     does not know: ``x0_guess`` is zero).  With the default input the nonlinearity's input ``z``
-    has a standard deviation of about 1.4, well into the saturation.  Gross outliers:
+    has a standard deviation of about 1.3, well into the saturation.  Gross outliers:
     ``round(outlier_fraction * N)`` samples get +-(2-6) standard deviations of the clean output.
 
     Parameters

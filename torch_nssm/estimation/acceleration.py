@@ -17,6 +17,9 @@ the process noise's once the Newton steps end.  (Jumping ``Rw`` while the Newton
 the maximum over ``f`` and ``g`` under those steps; docs/design.md, "Accelerated EM", has the
 variants measured on six manipulator records.)
 
+The EM loop sees the acceleration through :class:`Acceleration`'s hooks (before and after the
+M-step, after the E-step); :class:`NewtonAcceleration` is ``acceleration="newton"``.
+
 Safeguards: the EM step where ``I`` is not positive definite; a step at most ``MAX_FACTOR`` times
 the EM step (in the ``I_c`` norm); a step after which the log-likelihood estimate falls by more
 than :func:`newton_tolerance` is undone (the EM step is taken) and ends the acceleration; and
@@ -35,10 +38,15 @@ import numpy as np
 import torch
 
 from ..core.model import SequenceBatch, StateSpaceModel
+from ..core.scales import LOG_CHOLESKY
 from .estep import EStepOutput
+from .snapshot import restore, snapshot
 from .uncertainty import observed_information
 
 __all__ = [
+    "Acceleration",
+    "NewtonAcceleration",
+    "acceleration_for",
     "InformationAt",
     "NoiseExtrapolation",
     "NewtonStep",
@@ -112,7 +120,7 @@ def information_at(model: StateSpaceModel, data: SequenceBatch, est: EStepOutput
         est,
         fit_Rw=False,
         fit_Rv=False,
-        fit_dof=False,
+        fit_shape=False,
         n_trajectories=TRAJECTORIES,
         generator=generator,
     )
@@ -190,37 +198,23 @@ SQUAREM_MIN_COSINE = 0.5
 SQUAREM_MIN_STEP = 0.5
 
 
-# The matrix logarithm, not the information's log-Cholesky working scale (uncertainty._Block): it
-# does not depend on the order of the states, so a jump is the same whichever state comes first.
-def _sym_log(a: np.ndarray) -> np.ndarray | None:
-    """Matrix logarithm of a symmetric positive-definite matrix (``None`` if it is not one)."""
-    e, v = np.linalg.eigh(a)
-    if not np.all(np.isfinite(e)) or e.min() <= 0:
-        return None
-    return (v * np.log(e)) @ v.T
-
-
-def _sym_exp(a: np.ndarray) -> np.ndarray:
-    """Matrix exponential of a symmetric matrix (symmetrised first)."""
-    e, v = np.linalg.eigh((a + a.T) / 2)
-    return (v * np.exp(e)) @ v.T
-
-
 class NoiseExtrapolation:
     """Squared extrapolation (SQUAREM, Varadhan & Roland 2008) of the noise parameters.
 
     The Newton steps move ``f``'s and ``g``'s parameters; the noise parameters converge at EM's
     own linear rate (on the manipulator the measurement-noise scale starts 25x too large and EM
     shrinks it by 5-15 % per iteration).  From three successive EM iterates of a block
-    (``Rw``, ``Rv``, the degrees of freedom), ``t0 -> t1 -> t2``, this jumps to::
+    (``Rw`` and each parameter of the measurement noise), ``t0 -> t1 -> t2``, this jumps to::
 
         t' = t0 + 2 alpha r + alpha^2 v,   r = t1 - t0,  v = t2 - 2 t1 + t0,  alpha = |r| / |v|
 
     (``alpha = 1`` gives ``t2``; for a linear rate ``rho``, ``alpha = 1 / (1 - rho)``: the whole
-    remaining distance).  Coordinates: the matrix logarithms of ``Rw`` and ``Rv`` and the log
-    degrees of freedom, so every jump is a valid model; the next cycle starts at the jump, whose
-    own M-step is SQUAREM's stabilising step.  It needs no information: an extrapolated iteration
-    costs an EM iteration.
+    remaining distance).  Coordinates: those of each parameter's working scale
+    (:meth:`~torch_nssm.core.scales.WorkingScale.extrapolation`; the noise family declares them in
+    ``WORKING``): the matrix logarithms of ``Rw`` and ``Rv``, the logarithm of positive parameters
+    such as the degrees of freedom (clipped to the family's bounds), so every jump is a valid
+    model; the next cycle starts at the jump, whose own M-step is SQUAREM's stabilising step.  It
+    needs no information: an extrapolated iteration costs an EM iteration.
 
     Against the particle noise: a block is extrapolated only when its two EM steps agree in
     direction (cosine >= ``SQUAREM_MIN_COSINE``) and are not smaller than ``SQUAREM_MIN_STEP``
@@ -229,24 +223,18 @@ class NoiseExtrapolation:
     after which the log-likelihood estimate falls (:func:`newton_tolerance`), which shrinks the cap.
     """
 
-    def __init__(self, dof_bounds: tuple[float, float], n_obs: int):
-        self.dof_bounds = dof_bounds
+    def __init__(self, n_obs: int):
         self.min_step = SQUAREM_MIN_STEP * float(np.sqrt(2.0 / max(n_obs, 1)))
         self.step_max = SQUAREM_STEP_MAX
         self.points: list[dict[str, np.ndarray]] = []
 
     def _coordinates(self, model: StateSpaceModel) -> dict[str, np.ndarray]:
-        """The log-scale coordinates of each noise block that has them (not a singular ``Rw``)."""
+        """The extrapolation coordinates of each noise block that has them (not a singular ``Rw``)."""
         values = {"Rw": model.Rw, **model.noise.parameters()}
+        scales = {"Rw": LOG_CHOLESKY, **model.noise.WORKING}
         out = {}
         for name, value in values.items():
-            a = value.detach().cpu().double().numpy()
-            if a.ndim == 2:
-                a = _sym_log(a)
-            elif name == "dof" and np.all(a > 0):
-                a = np.log(a)
-            else:
-                continue
+            a = scales[name].extrapolation(value.detach().cpu().double().numpy())
             if a is not None:
                 out[name] = a
         return out
@@ -295,10 +283,133 @@ class NoiseExtrapolation:
         self.start(model)
 
     def _apply(self, model: StateSpaceModel, jumps: dict[str, np.ndarray]) -> StateSpaceModel:
-        def value(a: np.ndarray, like: torch.Tensor) -> torch.Tensor:
-            a = _sym_exp(a) if a.ndim == 2 else np.clip(np.exp(a), *self.dof_bounds)
+        noise = model.noise
+
+        def value(name: str, a: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+            if name == "Rw":
+                a = LOG_CHOLESKY.from_extrapolation(a, None)
+            else:
+                a = noise.WORKING[name].from_extrapolation(a, noise.bounds(name))
             return torch.as_tensor(a, dtype=like.dtype, device=like.device).reshape(like.shape)
 
-        Rw = value(jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
-        noise = {n: value(a, getattr(model.noise, n)) for n, a in jumps.items() if n != "Rw"}
-        return dataclasses.replace(model, Rw=Rw, noise=model.noise.replace(**noise))
+        Rw = value("Rw", jumps["Rw"], model.Rw) if "Rw" in jumps else model.Rw
+        params = {n: value(n, a, getattr(noise, n)) for n, a in jumps.items() if n != "Rw"}
+        return dataclasses.replace(model, Rw=Rw, noise=noise.replace(**params))
+
+
+# --------------------------------------------------------------------------- the EM loop's hooks
+class Acceleration:
+    """The EM loop's hooks for an acceleration; this base class is plain EM (the hooks do nothing).
+
+    The loop calls :meth:`start` after the first E-step, :meth:`before_mstep` with the E-step at the
+    current parameters, :meth:`after_mstep` with the M-step's iterate (the model returned is the
+    one whose E-step runs next), and :meth:`after_estep` once that E-step has run or failed (a
+    model returned is the M-step's iterate to go back to: the loop runs its E-step instead).
+    """
+
+    def start(self, model: StateSpaceModel) -> None:
+        """EM starts at ``model`` (its E-step has run)."""
+
+    def before_mstep(self, model: StateSpaceModel, data: SequenceBatch, estep: EStepOutput, generator):
+        """``estep`` is the E-step at ``model``, whose M-step runs next."""
+
+    def after_mstep(self, model: StateSpaceModel, rejected: bool) -> StateSpaceModel:
+        """The model whose E-step runs next, from the M-step's iterate ``model`` (``rejected``: the
+        M-step undid a module's step)."""
+        return model
+
+    def after_estep(self, log_likelihood: float, estep: EStepOutput | None) -> StateSpaceModel | None:
+        """After the E-step at :meth:`after_mstep`'s model (``estep``; ``None``: it failed), with
+        ``log_likelihood`` the estimate before the M-step: the M-step's iterate to go back to, or
+        ``None`` to keep the step."""
+        return None
+
+
+class NewtonAcceleration(Acceleration):
+    """``acceleration="newton"``: Newton steps for ``f``'s and ``g``'s parameters (:func:`newton_step`)
+    until a step is within one standard error, and squared extrapolation of the noise parameters
+    (:class:`NoiseExtrapolation`: the measurement noise's from the start, the process noise's once
+    the Newton steps end).  An accelerated step after which the log-likelihood estimate falls by
+    more than :func:`newton_tolerance` (or whose E-step fails) is undone and ends the Newton steps.
+
+    Parameters
+    ----------
+    n_obs : int
+        Observed samples (the extrapolation's least step, the tolerance of a lost step).
+    flags : list of bool
+        ``history["accelerated"]``: one flag per iterate, appended after each M-step.
+    """
+
+    def __init__(self, n_obs: int, flags: list):
+        self.newton = True  # Newton steps go on (each needs the information before the M-step)
+        self.previous_step: np.ndarray | None = None  # the last Newton step taken
+        self.max_factor = MAX_FACTOR  # the cap of the next Newton step
+        self.extrapolation = NoiseExtrapolation(n_obs)
+        self.tolerance = newton_tolerance(n_obs)
+        self.flags = flags
+        self.at: InformationAt | None = None
+        self.em_iterate: tuple | None = None  # while an accelerated step replaces the M-step's
+
+    def start(self, model: StateSpaceModel) -> None:
+        self.extrapolation.start(model)
+
+    def before_mstep(self, model: StateSpaceModel, data: SequenceBatch, estep: EStepOutput, generator):
+        """The information at the current parameters, before the M-step moves them."""
+        self.at, self.em_iterate = None, None
+        if self.newton:
+            try:
+                self.at = information_at(model, data, estep, generator)
+            except (RuntimeError, ValueError, NotImplementedError, torch.linalg.LinAlgError):
+                self.at = None
+            self.newton = self.at is not None
+
+    def after_mstep(self, model: StateSpaceModel, rejected: bool) -> StateSpaceModel:
+        if self.at is not None and not rejected:
+            kept = snapshot(model)
+            step = newton_step(self.at, model, self.previous_step, self.max_factor)
+            if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
+                self.max_factor /= 2.0
+            self.newton = not step.done and self.max_factor >= 2.0
+            if step.taken:
+                self.em_iterate, self.previous_step = kept, step.delta
+        # the measurement noise jumps from the start, the process noise once the Newton steps end
+        # (its jumps moved their maximum)
+        extrapolated = self.extrapolation.propose(model, rejected, ("Rw",) if self.newton else ())
+        if extrapolated is not None:
+            self.em_iterate = snapshot(model) if self.em_iterate is None else self.em_iterate
+            model = extrapolated
+        self.flags.append(self.em_iterate is not None)
+        return model
+
+    def after_estep(self, log_likelihood: float, estep: EStepOutput | None) -> StateSpaceModel | None:
+        if self.em_iterate is None:
+            return None
+        if estep is not None and log_likelihood - float(estep.log_likelihood.sum()) <= self.tolerance:
+            return None
+        # the accelerated step lost likelihood or failed: the M-step's iterate, EM from here for f
+        # and g, and for the noise shorter jumps in a new cycle
+        model, self.newton = restore(self.em_iterate), False
+        self.flags[-1] = False
+        self.extrapolation.undone(model)
+        return model
+
+
+class SquaremAcceleration(NewtonAcceleration):
+    """``acceleration="squarem"``: squared extrapolation of the noise parameters only
+    (:class:`NoiseExtrapolation`), no Newton steps and so no information computation: an
+    extrapolated iteration costs an EM iteration.  Where ``f`` and ``g`` converge fast (or are held:
+    a simulation model) and the noise parameters slowly, at EM's linear rate."""
+
+    def __init__(self, n_obs: int, flags: list):
+        super().__init__(n_obs, flags)
+        self.newton = False
+
+
+def acceleration_for(name: str | None, *, n_obs: int, history: dict):
+    """The loop's :class:`Acceleration` for ``acceleration=name`` (``None``: plain EM); ``history``
+    receives the ``"accelerated"`` flags."""
+    if name not in ("newton", "squarem"):
+        return Acceleration()
+    history["accelerated"] = []
+    kind = NewtonAcceleration if name == "newton" else SquaremAcceleration
+    return kind(n_obs, history["accelerated"])

@@ -304,11 +304,14 @@ def _smooth(model, data, filt, options: EStepOptions, generator) -> SmootherOutp
     return smoother(model, data, filt, **kwargs)
 
 
-def outlier_weights(log_weights: Tensor, e_lam: Tensor, data: SequenceBatch) -> list:
+def outlier_weights(
+    log_weights: Tensor, e_lam: Tensor, data: SequenceBatch, *, per_component: bool = False
+) -> list:
     """``E[lam_k | y]`` per record under the weights ``log_weights`` ``(T, B, L)``, as NumPy arrays
-    ``(T_b,)`` (or ``(T_b, p)`` for per-component scales); NaN where nothing is observed."""
+    ``(T_b,)`` (or ``(T_b, p)`` for a noise family with one latent scale per component,
+    ``per_component``); NaN where nothing is observed."""
     w = torch.exp(log_weights)
-    if e_lam.dim() == 4:  # per component
+    if per_component:
         ow = (w.unsqueeze(-1) * e_lam).sum(2)
         ow = torch.where(data.obs_mask, ow, torch.full_like(ow, math.nan))
     else:

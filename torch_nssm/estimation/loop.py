@@ -20,16 +20,14 @@ import torch
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..inference.filtering import NumericalError
 from ..inference.random import SequenceStreams
-from .acceleration import MAX_FACTOR, NoiseExtrapolation, information_at, newton_step, newton_tolerance
+from .acceleration import acceleration_for
+from .convergence import has_converged
 from .estep import EStepOptions, EStepOutput, e_step, to_records
 from .independent import stack_models
-from .mstep import MStepOptions, m_step, module_state
+from .mstep import MStepOptions, m_step
+from .snapshot import restore, snapshot
 
-__all__ = ["EMOptions", "EMResult", "run_em", "CONVERGENCE_WINDOW"]
-
-#: Convergence compares the mean log-likelihood estimate of the last CONVERGENCE_WINDOW iterations
-#: with that of the window before: single particle estimates are too noisy to compare.
-CONVERGENCE_WINDOW = 5
+__all__ = ["EMOptions", "EMResult", "EStepCache", "run_em"]
 
 
 @dataclass
@@ -41,14 +39,16 @@ class EMOptions:
     n_iter : int
         Maximum number of EM iterations.
     tol : float
-        Convergence threshold on the change of the per-observation log-likelihood, averaged over
-        windows of :data:`CONVERGENCE_WINDOW` iterations (0: run all ``n_iter``).
+        Convergence threshold on the change of the log-likelihood estimate per observation and
+        iteration over the window in which every parameter's drift is tested
+        (:func:`.convergence.has_converged`; 0: run all ``n_iter``).
     n_particles_final : int or None
         Grow the particle count geometrically from ``estep.n_particles`` to this at ``n_iter``.
     average_last : int
         Average the last ``average_last`` iterates (if > 1) before the final E-step.
-    acceleration : {None, "newton"}
-        ``"newton"``: Newton-type steps for ``f``'s and ``g``'s parameters from the observed
+    acceleration : {None, "squarem", "newton"}
+        ``"squarem"``: squared extrapolation of the noise parameters (single fits).  ``"newton"``:
+        also Newton-type steps for ``f``'s and ``g``'s parameters from the observed
         information, until a step is within one standard error, then squared extrapolation of
         the noise parameters (:mod:`.acceleration`; single fits with an exact E-step only).
     estep, mstep : EStepOptions, MStepOptions
@@ -97,6 +97,9 @@ class EMResult:
         Why EM stopped early (a numerical failure), else ``None``.
     interrupted : bool
         Stopped by Ctrl-C (``KeyboardInterrupt``) after ``n_done`` iterations.
+    halted : str or None
+        Why EM stopped at a good iterate before converging (the log-likelihood estimate fell far
+        more than its Monte Carlo error after an M-step, which was undone), else ``None``.
     """
 
     model: StateSpaceModel
@@ -106,6 +109,7 @@ class EMResult:
     converged: bool = False
     error: str | None = None
     interrupted: bool = False
+    halted: str | None = None
 
     @property
     def log_likelihood(self) -> float:
@@ -142,15 +146,6 @@ def averaged(model: StateSpaceModel, history: dict, k: int) -> StateSpaceModel:
     return replace(model, Rw=mean("Rw", model.Rw), noise=noise, x0_mean=mean("x0_mean", model.x0_mean))
 
 
-def converged(lls: list[float], n_obs: int, tol: float) -> bool:
-    """Whether the windowed mean log-likelihood changed by less than ``tol`` per observation."""
-    w = CONVERGENCE_WINDOW
-    if tol <= 0 or len(lls) < 2 * w:
-        return False
-    recent, before = np.mean(lls[-w:]), np.mean(lls[-2 * w : -w])
-    return abs(recent - before) / max(n_obs, 1) < tol
-
-
 class _Batch:
     """The active groups' models and data as one batch (the same order as the groups)."""
 
@@ -163,15 +158,151 @@ class _Batch:
             self.data = data if len(groups) == data.n_sequences else data.select(idx)
 
 
-def _snapshot(model: StateSpaceModel):
-    return model, module_state(model.f), module_state(model.g)
+class EStepCache:
+    """The E-steps of one EM loop: the last E-step output of each group, and the one spare output
+    whose arrays the next E-step overwrites (``e_step``'s ``recycle``: fresh arrays cost their
+    first-touch page faults, about a third of an iteration on a CPU).
+
+    Parameters
+    ----------
+    models : list of StateSpaceModel
+        The loop's models, one per group (the list the loop updates).
+    data, options, generator, shared
+        As :func:`run_em`'s.
+    run : callable
+        The E-step function (:func:`~torch_nssm.estimation.estep.e_step`).
+    """
+
+    def __init__(self, models, data: SequenceBatch, options: EMOptions, generator, shared: bool, run):
+        self.models, self.data, self.options = models, data, options
+        self.generator, self.shared, self.run = generator, shared, run
+        self.last: list[tuple[EStepOutput, int] | None] = [None] * len(models)  # (batch output, index)
+        self.batch: _Batch | None = None  # the groups of the last E-step, as one batch
+        self.latest: EStepOutput | None = None  # the last E-step's output
+        self.spare: EStepOutput | None = None  # an E-step output nothing reads any more
+
+    def __call__(self, groups: list[int], iteration: int | None) -> None:
+        """The E-step of ``groups`` at their current models (``iteration`` sets the particle count;
+        ``None``: the final count)."""
+        batch = _Batch(groups, self.models, self.data, self.shared)
+        options = replace(self.options.estep, n_particles=self.options.n_particles(iteration))
+        gen = self.generator.select(groups) if isinstance(self.generator, SequenceStreams) else self.generator
+        old = self.output(groups[0])
+        previous = old if self.shared else None
+        recycle, self.spare = self.spare, None
+        size = (batch.data.n_sequences, options.n_particles)
+        if recycle is not None and tuple(recycle.filter.particles.shape[1:3]) != size:
+            recycle = None  # other sizes: freed before this E-step, not held through it
+        estep = self.run(batch.model, batch.data, options, gen, previous, records=False, recycle=recycle)
+        for j, g in enumerate(groups):
+            self.last[g] = (estep, j)
+        if old is not None and old.windows is None and all(e is None or e[0] is not old for e in self.last):
+            self.spare = old  # its arrays are overwritten by the E-step after next
+        self.batch, self.latest = batch, estep
+
+    def output(self, group: int) -> EStepOutput | None:
+        """The last E-step output that covers ``group`` (a batch's; ``None`` before the first)."""
+        last = self.last[group]
+        return None if last is None else last[0]
+
+    def selection(self, update: list[int], n_active: int) -> tuple[SequenceBatch, EStepOutput]:
+        """The data and E-step output of the positions ``update`` among the ``n_active`` groups of
+        the last E-step (what the M-step sees: a segmented E-step's windows own their samples)."""
+        estep = self.latest
+        if len(update) == n_active:  # the usual case: no copy of the E-step output
+            return (self.batch.data if estep.windows is None else estep.windows.owned_data), estep
+        sel = torch.tensor(update, device=self.data.y.device)
+        return self.batch.data.select(sel), estep.select(sel)
+
+    def result(self, group: int, model: StateSpaceModel) -> EStepOutput | None:
+        """``group``'s E-step output at the end: per record, the group's own sequences."""
+        if self.last[group] is None:
+            return None
+        estep, j = self.last[group]
+        return to_records(estep, model, self.data) if self.shared else estep.select(slice(j, j + 1))
 
 
-def _restore(snapshot) -> StateSpaceModel:
-    model, f_state, g_state = snapshot
-    model.f.load_state_dict(f_state)
-    model.g.load_state_dict(g_state)
-    return model
+@dataclass
+class _Groups:
+    """What the loop knows of each group: its model, history, log-likelihood estimates, completed
+    iterations, convergence and error, and which groups are still iterating."""
+
+    models: list[StateSpaceModel]
+    shared: bool
+    n_obs: list[int]
+    histories: list = field(default_factory=list)
+    lls: list = field(default_factory=list)
+    n_done: list = field(default_factory=list)
+    done: list = field(default_factory=list)
+    errors: list = field(default_factory=list)
+    active: list = field(default_factory=list)
+    snapshots: dict = field(default_factory=dict)  # the iterates before the running M-step
+    interrupted: bool = False
+    halted: dict = field(default_factory=dict)  # group -> why it stopped at its previous iterate
+
+    @classmethod
+    def start(cls, models: list[StateSpaceModel], data: SequenceBatch, shared: bool) -> _Groups:
+        n = len(models)
+        observed = data.obs_mask.any(-1).sum(0).tolist()
+        return cls(
+            list(models),
+            shared,
+            [sum(observed)] if shared else observed,
+            histories=[defaultdict(list) for _ in range(n)],
+            lls=[[] for _ in range(n)],
+            n_done=[0] * n,
+            done=[False] * n,
+            errors=[None] * n,
+            active=list(range(n)),
+        )
+
+    def record(self, estep: EStepCache, it: int, options: EMOptions) -> list[int]:
+        """Record the active groups' iterates and their E-step's log-likelihood; the positions (in
+        ``active``) of the groups that go on: not converged and ``it < n_iter``."""
+        if not self.active:
+            return []
+        batch_lls = estep.latest.log_likelihood.tolist()
+        update = []
+        for j, g in enumerate(self.active):
+            ll = sum(batch_lls) if self.shared else batch_lls[j]
+            record(self.histories[g], self.models[g], ll)
+            self.lls[g].append(ll)
+            scales = self.models[g].noise.convergence_scales(self.n_obs[g])
+            scales = {k: v.detach().cpu().numpy() for k, v in scales.items()}
+            scales["Rw"] = np.full(self.models[g].Rw.shape, math.sqrt(2.0 / max(self.n_obs[g], 1)))
+            if has_converged(self.histories[g], self.n_obs[g], options.tol, scales=scales):
+                self.done[g] = True
+            elif it < options.n_iter:
+                update.append(j)
+        return update
+
+    def stop(self, groups: list[int], message: str, *, back: bool = True) -> None:
+        """``groups`` stop with an error (``back``: at the iterate before the running M-step)."""
+        for g in groups:
+            if back:
+                self.models[g] = restore(self.snapshots[g])
+            self.errors[g] = message
+
+    def undo_unfinished(self) -> None:
+        """Ctrl-C: every group keeps its last completed iteration (an interrupted M-step is undone)."""
+        self.interrupted = True
+        for g in range(len(self.models)):
+            if g in self.snapshots and self.n_done[g] < len(self.lls[g]):
+                self.models[g] = restore(self.snapshots[g])
+
+    def results(self, estep: EStepCache) -> list[EMResult]:
+        out = []
+        for g, model in enumerate(self.models):
+            history = dict(self.histories[g])
+            for key in ("rejected.f", "rejected.g", "accelerated"):  # an interrupt or error can leave a
+                if key in history or key != "accelerated":  # flag without its iterate
+                    history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
+            n_done, done, error = self.n_done[g], self.done[g], self.errors[g]
+            interrupted = self.interrupted
+            result = EMResult(model, estep.result(g, model), history, n_done, done, error, interrupted)
+            result.halted = self.halted.get(g)
+            out.append(result)
+        return out
 
 
 def run_em(
@@ -201,186 +332,158 @@ def run_em(
     list of EMResult
         One per group; a group stopped by an error or an interrupt keeps its last good model.
     """
-    n_groups = len(models)
-    models = list(models)
-    histories = [defaultdict(list) for _ in range(n_groups)]
-    lls: list[list[float]] = [[] for _ in range(n_groups)]
-    n_done = [0] * n_groups
-    done = [False] * n_groups
-    errors: list[str | None] = [None] * n_groups
-    last: list[tuple[EStepOutput, int] | None] = [None] * n_groups
-    observed = data.obs_mask.any(-1).sum(0).tolist()
-    n_obs = [sum(observed)] if shared else observed
-    interrupted = False
-
-    spare: list[EStepOutput | None] = [None]  # an E-step output nothing reads any more
-
-    def estep(groups: list[int], iteration: int | None) -> _Batch:
-        batch = _Batch(groups, models, data, shared)
-        est_options = replace(options.estep, n_particles=options.n_particles(iteration))
-        gen = generator.select(groups) if isinstance(generator, SequenceStreams) else generator
-        previous = last[groups[0]][0] if shared and last[groups[0]] is not None else None
-        old = last[groups[0]][0] if last[groups[0]] is not None else None
-        recycle, spare[0] = spare[0], None
-        size = (batch.data.n_sequences, est_options.n_particles)
-        if recycle is not None and tuple(recycle.filter.particles.shape[1:3]) != size:
-            recycle = None  # other sizes: freed before this E-step, not held through it
-        est = e_step(batch.model, batch.data, est_options, gen, previous, records=False, recycle=recycle)
-        for j, g in enumerate(groups):
-            last[g] = (est, j)
-        if old is not None and old.windows is None and all(e is None or e[0] is not old for e in last):
-            spare[0] = old  # its arrays are overwritten by the E-step after next (e_step's recycle)
-        return batch
-
-    active = list(range(n_groups))
-    snapshots: dict[int, tuple] = {}
-    accelerating = options.acceleration == "newton" and shared and options.estep.segment_length is None
-    previous_step, max_factor = None, MAX_FACTOR  # the last Newton step taken, the cap of the next
-    extrapolation = NoiseExtrapolation(options.mstep.dof_bounds, n_obs[0]) if accelerating else None
-    if accelerating:
-        histories[0]["accelerated"] = []
+    groups = _Groups.start(models, data, shared)
+    estep = EStepCache(groups.models, data, options, generator, shared, e_step)
+    # acceleration: single fits; Newton steps need the exact E-step (the information)
+    exact = shared and (options.estep.segment_length is None or options.acceleration == "squarem")
+    acceleration = acceleration_for(
+        options.acceleration if exact else None,
+        n_obs=groups.n_obs[0],
+        history=groups.histories[0],
+    )
     bar = _progress_bar(options.n_iter, options.progress)
     try:
-        try:
-            batch = estep(active, 0)
-        except (NumericalError, torch.linalg.LinAlgError) as exc:
-            for g in active:
-                errors[g] = f"EM could not start: the E-step failed at the initial parameters: {exc}"
-            active = []
-        if extrapolation is not None and active:
-            extrapolation.start(models[0])
+        failure = _attempt(estep, groups.active, 0)
+        if failure is None:
+            acceleration.start(groups.models[0])
+        else:
+            message = f"EM could not start: the E-step failed at the initial parameters: {failure}"
+            groups.stop(groups.active, message, back=False)
+            groups.active = []
         for it in range(options.n_iter + 1):
-            if not active:
-                break
-            est = last[active[0]][0]
-            batch_lls = est.log_likelihood.tolist()
-            update = []
-            for j, g in enumerate(active):
-                ll = sum(batch_lls) if shared else batch_lls[j]
-                record(histories[g], models[g], ll)
-                lls[g].append(ll)
-                if converged(lls[g], n_obs[g], options.tol):
-                    done[g] = True
-                elif it < options.n_iter:
-                    update.append(j)
+            update = groups.record(estep, it, options)  # the groups that go on
             if not update:
                 break
-            snapshots = {active[j]: _snapshot(models[active[j]]) for j in update}
-            ids = [active[j] for j in update]
-            if len(update) == len(active):  # the usual case: no copy of the E-step output
-                sub_data, sub_est = batch.data if est.windows is None else est.windows.owned_data, est
-            else:
-                sel = torch.tensor(update, device=data.y.device)
-                sub_data, sub_est = batch.data.select(sel), est.select(sel)
-            at = None
-            if accelerating:  # the information at the current parameters, before the M-step moves them
-                try:
-                    at = information_at(models[0], sub_data, sub_est, generator)
-                except (RuntimeError, ValueError, NotImplementedError, torch.linalg.LinAlgError):
-                    at = None
-                accelerating = at is not None
-            m_options = options.mstep
-            if isinstance(generator, SequenceStreams):  # each data set's minibatches from its stream
-                solver = replace(m_options.solver, generator=generator.select(ids))
-                m_options = replace(m_options, solver=solver)
-            result = m_step([models[g] for g in ids], sub_data, sub_est, m_options, shared=shared)
-            still = []
-            for g, new, error, report in zip(ids, result.models, result.errors, result.reports):
-                if error is not None:
-                    errors[g] = f"EM stopped at iteration {it + 1}: {error}"
-                    continue
-                for label in ("f", "g"):  # index it + 1: the iterate this M-step produced
-                    histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
-                models[g] = new
-                still.append(g)
-            em_iterate = None  # while an accelerated step replaces the M-step's: the M-step's iterate
-            if extrapolation is not None and still:  # (single fits with acceleration="newton")
-                rejected = any(report[label].rejected for report in result.reports for label in ("f", "g"))
-                if at is not None and not rejected:
-                    snapshot = _snapshot(models[0])
-                    step = newton_step(at, models[0], previous_step, max_factor)
-                    if step.reason == "reversed":  # the last Newton step overshot: shorter ones from now
-                        max_factor /= 2.0
-                    accelerating = not step.done and max_factor >= 2.0
-                    if step.taken:
-                        em_iterate, previous_step = snapshot, step.delta
-                # the measurement noise jumps from the start, the process noise once the Newton
-                # steps end (its jumps moved their maximum)
-                extrapolated = extrapolation.propose(models[0], rejected, ("Rw",) if accelerating else ())
-                if extrapolated is not None:
-                    em_iterate = _snapshot(models[0]) if em_iterate is None else em_iterate
-                    models[0] = extrapolated
-                histories[0]["accelerated"].append(em_iterate is not None)
-            if still:
-                try:
-                    batch = estep(still, it + 1)
-                    lost = em_iterate is not None and (
-                        lls[0][-1] - float(last[0][0].log_likelihood.sum()) > newton_tolerance(n_obs[0])
-                    )
-                except (NumericalError, torch.linalg.LinAlgError) as exc:
-                    batch, failure, lost = None, str(exc), em_iterate is not None
-                if lost:  # the accelerated step lost likelihood or failed: the M-step's instead
-                    models[0], accelerating = _restore(em_iterate), False  # Newton: EM from here
-                    histories[0]["accelerated"][-1] = False
-                    if extrapolation is not None:  # the noise: shorter jumps, a new cycle at the M-step's
-                        extrapolation.undone(models[0])
-                    try:
-                        batch = estep(still, it + 1)
-                    except (NumericalError, torch.linalg.LinAlgError) as exc:
-                        batch, failure = None, str(exc)
-                if batch is None:
-                    for g in still:
-                        models[g] = _restore(snapshots[g])
-                        errors[g] = f"EM stopped at iteration {it + 1}: {failure}"
-                    still = []
-            for g in still:
-                n_done[g] += 1
-            active = still
+            _iterate(groups, update, it, estep, acceleration, options, generator)
             bar.update(1)
-            if shared and active:
-                ll = float(last[0][0].log_likelihood.sum())
-                postfix = {"loglik": f"{ll / max(n_obs[0], 1):.4f}/obs"}
-                dof = getattr(models[0].noise, "dof", None)
-                if dof is not None and dof.dim() == 0:
-                    postfix["dof"] = f"{float(dof):.3g}"
-                bar.set_postfix(postfix)
+            _show(bar, groups, estep)
     except KeyboardInterrupt:
-        # Ctrl-C: every group keeps its last completed iteration (an interrupted M-step is undone)
-        interrupted = True
-        for g in range(n_groups):
-            if g in snapshots and n_done[g] < len(lls[g]):
-                models[g] = _restore(snapshots[g])
+        groups.undo_unfinished()
     finally:
         bar.close()
-    if not interrupted:
-        _finish(models, histories, n_done, errors, last, options, estep)
-    results = []
-    for g in range(n_groups):
-        est = None
-        if last[g] is not None:
-            batch_est, j = last[g]
-            est = to_records(batch_est, models[g], data) if shared else batch_est.select(slice(j, j + 1))
-        history = dict(histories[g])
-        for key in ("rejected.f", "rejected.g", "accelerated"):  # an interrupt or error can leave a
-            if key in history or key != "accelerated":  # flag without its iterate
-                history[key] = history.get(key, [])[: len(history.get("log_likelihood", []))]
-        results.append(EMResult(models[g], est, history, n_done[g], done[g], errors[g], interrupted))
-    return results
+    if not groups.interrupted:
+        _finish(groups, options, estep)
+    return groups.results(estep)
 
 
-def _finish(models, histories, n_done, errors, last, options: EMOptions, estep) -> None:
+def _iterate(
+    groups: _Groups, update: list[int], it: int, estep: EStepCache, acceleration, options, generator
+) -> None:
+    """EM iteration ``it + 1`` of the active groups at positions ``update``: the M-step, the
+    acceleration's step, the E-step at the new iterates; a group whose M-step or E-step fails stops
+    at its last iterate."""
+    ids = [groups.active[j] for j in update]
+    groups.snapshots = {g: snapshot(groups.models[g]) for g in ids}
+    sub_data, sub_estep = estep.selection(update, len(groups.active))
+    acceleration.before_mstep(groups.models[0], sub_data, sub_estep, generator)
+    still, rejected = _m_step(groups, ids, sub_data, sub_estep, options, generator, it)
+    if still:
+        groups.models[0] = acceleration.after_mstep(groups.models[0], rejected)
+        failure = _attempt(estep, still, it + 1)
+        undo = acceleration.after_estep(groups.lls[0][-1], estep.latest if failure is None else None)
+        if undo is not None:  # the accelerated step lost likelihood or failed: the M-step's instead
+            groups.models[0] = undo
+            failure = _attempt(estep, still, it + 1)
+        if failure is not None:
+            groups.stop(still, f"EM stopped at iteration {it + 1}: {failure}")
+            still = []
+    still = _halt_on_collapse(groups, still, it, estep)
+    for g in still:
+        groups.n_done[g] += 1
+    groups.active = still
+
+
+#: An iteration whose log-likelihood estimate falls by more than this per observation (and by more
+#: than COLLAPSE_MIN) is undone and ends EM: EM does not lower the likelihood, and a particle
+#: estimate's Monte Carlo error is a few units; such a fall means a degenerate filter (a noise
+#: parameter shrinking towards zero) or an M-step that should not have been taken.
+COLLAPSE_PER_OBS = 0.5
+COLLAPSE_MIN = 100.0
+
+
+def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCache) -> list[int]:
+    """The groups of ``still`` whose new log-likelihood estimate did not collapse; the others get
+    their previous iterate back (and its E-step) and stop, with the reason in ``groups.halted``."""
+    if not still:
+        return still
+    lls = estep.latest.log_likelihood.tolist()
+    fallen = []
+    for j, g in enumerate(still):
+        ll = sum(lls) if groups.shared else lls[j]
+        drop = groups.lls[g][-1] - ll
+        if drop > max(COLLAPSE_PER_OBS * groups.n_obs[g], COLLAPSE_MIN):
+            fallen.append(g)
+            groups.halted[g] = (
+                f"the log-likelihood estimate fell from {groups.lls[g][-1]:.6g} to {ll:.6g} at iteration "
+                f"{it + 1} "
+                "(far more than its Monte Carlo error: the particle filter degenerates, e.g. as a noise "
+                "parameter shrinks, or the M-step went wrong), so that iteration was undone and EM stopped "
+                f"at iteration {it}"
+            )
+    if not fallen:
+        return still
+    for g in fallen:
+        groups.models[g] = restore(groups.snapshots[g])
+        for key in ("rejected.f", "rejected.g"):  # the flags of the undone M-step
+            if len(groups.histories[g][key]) > len(groups.lls[g]) - 1:
+                groups.histories[g][key].pop()
+    _attempt(estep, fallen, it)
+    return [g for g in still if g not in fallen]
+
+
+def _m_step(groups: _Groups, ids: list[int], data, estep, options: EMOptions, generator, it: int) -> tuple:
+    """The M-step of the groups ``ids``: the groups it updated, and whether it undid a module's step."""
+    m_options = options.mstep
+    if isinstance(generator, SequenceStreams):  # each data set's minibatches from its stream
+        m_options = replace(m_options, solver=replace(m_options.solver, generator=generator.select(ids)))
+    result = m_step([groups.models[g] for g in ids], data, estep, m_options, shared=groups.shared)
+    still, rejected = [], False
+    for g, new, error, report in zip(ids, result.models, result.errors, result.reports):
+        if error is not None:
+            groups.errors[g] = f"EM stopped at iteration {it + 1}: {error}"
+            continue
+        for label in ("f", "g"):  # index it + 1: the iterate this M-step produced
+            groups.histories[g][f"rejected.{label}"].append(bool(report[label].rejected))
+            rejected = rejected or bool(report[label].rejected)
+        groups.models[g] = new
+        still.append(g)
+    return still, rejected
+
+
+def _attempt(estep: EStepCache, groups: list[int], iteration: int | None) -> str | None:
+    """Run the E-step of ``groups``; why it failed (``None`` if it did not)."""
+    try:
+        estep(groups, iteration)
+    except (NumericalError, torch.linalg.LinAlgError) as exc:
+        return str(exc)
+    return None
+
+
+def _show(bar, groups: _Groups, estep: EStepCache) -> None:
+    """The progress bar: log-likelihood per observation, and the noise family's scalar parameters."""
+    if groups.shared and groups.active:
+        ll = float(estep.latest.log_likelihood.sum())
+        postfix = {"loglik": f"{ll / max(groups.n_obs[0], 1):.4f}/obs"}
+        for name, value in groups.models[0].noise.parameters().items():  # its scalar parameters
+            if value.dim() == 0:
+                postfix[name] = f"{float(value):.3g}"
+        bar.set_postfix(postfix)
+
+
+def _finish(groups: _Groups, options: EMOptions, estep: EStepCache) -> None:
     """Average the last iterates and/or run the final E-step at the final particle count."""
     K = options.average_last
     final = [
         g
-        for g in range(len(models))
-        if errors[g] is None and ((K > 1 and n_done[g] >= K) or (options.n_particles_final and n_done[g]))
+        for g in range(len(groups.models))
+        if groups.errors[g] is None
+        and ((K > 1 and groups.n_done[g] >= K) or (options.n_particles_final and groups.n_done[g]))
     ]
     if not final:
         return
     for g in final:
-        if K > 1 and n_done[g] >= K:
-            models[g] = averaged(models[g], histories[g], K)
+        if K > 1 and groups.n_done[g] >= K:
+            groups.models[g] = averaged(groups.models[g], groups.histories[g], K)
     estep(final, None)
 
 

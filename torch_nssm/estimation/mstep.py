@@ -73,19 +73,27 @@ class MStepOptions:
         closed form.
     solver : SolverSettings
         Its iterations, step size, minibatches.
-    fit_Rw, fit_Rv, fit_dof, fit_x0 : bool
-        Which noise parameters and the initial-state prior are updated.
-    dof_bounds : (float, float)
-        Bracket of the degrees-of-freedom root-solve.
+    fit_Rw, fit_Rv, fit_x0 : bool
+        Whether ``Rw``, ``Rv`` and the initial-state prior are updated.
+    fit_shape : bool
+        Whether the measurement noise's other parameters are updated: those its specification
+        estimates (e.g. the Student-t's ``dof`` with ``fit_dof``); False holds them all.
+    rows_per_step : int or None
+        Thin the gradient solvers' regressions to at most this many rows per time step
+        (:meth:`Regression.rows`); ``None``: every particle's row.
+    fit_modules : bool
+        Whether ``f``'s and ``g``'s parameters are updated (False: only the noise parameters and
+        the initial-state prior; a simulation model's, whose modules the first stage fitted).
     """
 
     optimizer: str = "lbfgs"
     solver: SolverSettings = field(default_factory=SolverSettings)
-    fit_dof: bool = True
-    dof_bounds: tuple[float, float] = (0.1, 1000.0)
+    fit_shape: bool = True
     fit_x0: bool = True
     fit_Rw: bool = True
     fit_Rv: bool = True
+    rows_per_step: int | None = None
+    fit_modules: bool = True
 
 
 @dataclass
@@ -137,10 +145,18 @@ class Regression:
     def whitener_at(self, sl: slice) -> Tensor:
         return self.whitener if self.whitener.shape[0] == 1 else self.whitener[sl]
 
-    def rows(self, sequences: slice) -> RegressionRows:
-        """The flattened rows of ``sequences`` whose weight exceeds :data:`ROW_WEIGHT_CUTOFF`."""
+    def rows(
+        self, sequences: slice, rows_per_step: int | None = None, generator: torch.Generator | None = None
+    ) -> RegressionRows:
+        """The flattened rows of ``sequences`` whose weight exceeds :data:`ROW_WEIGHT_CUTOFF`.
+
+        ``rows_per_step``: at most that many rows per time step, drawn by systematic resampling of
+        the step's weights (a particle drawn ``c`` times keeps one row with ``c`` times the share),
+        an unbiased thinning of the weighted objective for the gradient solvers."""
         sl = slice(None)
         w = self.row_weight(sl)[:, sequences]
+        if rows_per_step is not None and rows_per_step < w.shape[-1]:
+            w = _thinned(w, rows_per_step, generator)
         keep = w > ROW_WEIGHT_CUTOFF
         T, B, L = keep.shape
         C = self.whitener_at(sl)[:, sequences].expand(T, B, *self.whitener.shape[-2:])
@@ -159,6 +175,25 @@ class Regression:
         target = self.target[:, sequences].expand(T, B, L, self.target.shape[-1])[keep]
         u = self.u[:, sequences].unsqueeze(2).expand(T, B, L, self.u.shape[-1])[keep]
         return RegressionRows(x, u, target, w[keep], P)
+
+
+def _thinned(w: Tensor, m: int, generator: torch.Generator | None) -> Tensor:
+    """Weights ``(T, B, L)`` thinned to at most ``m`` non-zero entries per step with the same sum
+    and expectation (systematic resampling of each step)."""
+    T, B, L = w.shape
+    flat = w.reshape(-1, L)
+    total = flat.sum(-1)
+    live = torch.nonzero(total > 0).flatten()
+    out = torch.zeros_like(flat)
+    if live.numel():
+        cdf = torch.cumsum(flat[live], dim=-1)
+        cdf = cdf / cdf[:, -1:]
+        u = torch.rand((live.numel(), 1), dtype=w.dtype, generator=generator).to(w.device)
+        positions = (torch.arange(m, dtype=w.dtype, device=w.device) + u) / m
+        idx = torch.searchsorted(cdf, positions, right=True).clamp_(max=L - 1)
+        counts = torch.zeros_like(cdf).scatter_add_(1, idx, torch.ones_like(positions))
+        out[live] = counts * (total[live] / m).unsqueeze(-1)
+    return out.reshape(T, B, L)
 
 
 # ---------------------------------------------------------------------- evaluation per group
@@ -279,10 +314,11 @@ def _update_modules(
             return replace(options.solver, generator=gen.cpu_generator(g))
         return options.solver
 
-    reports = [
-        fit_weighted_regression(m, problem.rows(groups.sequences(g)), options.optimizer, settings(g))
-        for g, m in enumerate(modules)
-    ]
+    reports = []
+    for g, m in enumerate(modules):
+        solver = settings(g)
+        rows = problem.rows(groups.sequences(g), options.rows_per_step, solver.generator)
+        reports.append(fit_weighted_regression(m, rows, options.optimizer, solver))
     return reports, None
 
 
@@ -324,15 +360,17 @@ def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice]
     return lambda sl: weights_of(sl) * observed[sl]
 
 
-def observation_regression(data: SequenceBatch, est: EStepOutput) -> Regression:
+def observation_regression(
+    data: SequenceBatch, est: EStepOutput, *, per_component: bool = False
+) -> Regression:
     """The ``theta_g`` regression: ``(x_k^l, u_k) -> y_k``, weight ``W_{k|N}^l`` times the latent
-    scales (per component where the noise has one scale per component), metric ``Rv^-1`` on the
-    observed components."""
+    scales, metric ``Rv^-1`` on the observed components.  ``per_component``: the noise family's
+    (one latent scale per output component, which then weights the components of each row)."""
     W = smoothing_weights(data, est)
     scale = est.filter.scale
     y = scale.fill_missing(data.y).unsqueeze(2)  # (T, B, 1, p)
     X, e_lam = est.filter.particles, est.e_lam
-    if e_lam.dim() == 4:  # one latent scale per component
+    if per_component:
         return Regression(X, data.u, y, W, scale.whitener(), lambda sl: e_lam[sl])
     return Regression(X, data.u, y, lambda sl: W(sl) * e_lam[sl], scale.whitener())
 
@@ -376,7 +414,7 @@ def noise_statistics(
     """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
     groups = _Groups(shared, data.n_sequences)
     scale = est.filter.scale
-    regression = observation_regression(data, est)
+    regression = observation_regression(data, est, per_component=noise.per_component)
     W = smoothing_weights(data, est)
     predict = _evaluator(g, groups)
     stats: dict[str, Tensor] = {}
@@ -444,17 +482,21 @@ def m_step(
 
     trans = transition_regression(Rw_old, data, est)
     # Rw's scatter from the closed form's pass where it gives it reliably (one pass fewer)
-    reports_f, scatter = _update_modules(fs, trans, groups, options, scatter=options.fit_Rw)
+    held = [SolverReport(math.nan, math.nan) for _ in models]
+    if options.fit_modules:
+        reports_f, scatter = _update_modules(fs, trans, groups, options, scatter=options.fit_Rw)
+    else:
+        reports_f, scatter = held, None
     Rw = Rw_old
     if options.fit_Rw:
         Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
 
-    reports_g, _ = _update_modules(gs, observation_regression(data, est), groups, options)
+    regression = observation_regression(data, est, per_component=noise_old.per_component)
+    reports_g = _update_modules(gs, regression, groups, options)[0] if options.fit_modules else held
     noise = noise_old.updated(
         noise_statistics(noise_old, gs, data, est, shared=shared),
         fit_Rv=options.fit_Rv,
-        fit_dof=options.fit_dof,
-        dof_bounds=options.dof_bounds,
+        fit_shape=options.fit_shape,
     )
     if options.fit_x0:
         x0_mean, x0_cov = initial_state_update(est, Rw, shared=shared)

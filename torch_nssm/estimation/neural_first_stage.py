@@ -41,12 +41,13 @@ from torch import Tensor, nn
 
 from .._stats import MAD_TO_STD
 from ..core.model import SequenceBatch, StateSpaceModel
-from .first_stage import NETWORK_LAYERS, held_process_noise
+from .first_stage import NETWORK_LAYERS
 
 __all__ = [
     "NeuralFirstStageOptions",
     "NeuralFirstStageReport",
     "StateEncoder",
+    "default_options",
     "holds_network",
     "neural_first_stage",
     "fit_initial_states",
@@ -189,6 +190,14 @@ class NeuralFirstStageReport:
     encoder : nn.Module or None
         Adam: the trained :class:`StateEncoder`.
     loss : str
+    explained : float
+        Robust R² of the whole records' free run against ``y`` (set by the start policy,
+        :func:`torch_nssm.estimation.start.first_stage_start`; NaN otherwise).
+    free_run_scale_before_em, free_run_scale_after_em : float
+        Robust scale of the training free-run errors after the stage and after EM (set by the
+        simulation check after a fit, :func:`torch_nssm.estimation.start.check_simulation`).
+    interrupted : bool
+        Always False: the stage is not interrupted by Ctrl-C (the fit is).
     """
 
     accepted: bool
@@ -208,6 +217,10 @@ class NeuralFirstStageReport:
     first_states: Tensor
     encoder: nn.Module | None = field(default=None, repr=False)
     loss: str = "cauchy"
+    explained: float = math.nan
+    free_run_scale_before_em: float = math.nan
+    free_run_scale_after_em: float = math.nan
+    interrupted: bool = False
 
 
 class StateEncoder(nn.Module):
@@ -270,6 +283,12 @@ def holds_network(model: StateSpaceModel) -> bool:
     if not any(p.requires_grad for m in modules for p in m.parameters()):
         return False
     return any(isinstance(sub, NETWORK_LAYERS) for m in modules for sub in m.modules())
+
+
+def default_options(noise_name: str) -> NeuralFirstStageOptions:
+    """The stage's settings for a measurement-noise family (its ``name``): least squares for
+    ``"gaussian"``, the robust (Cauchy) loss for the others."""
+    return NeuralFirstStageOptions(loss="squared" if noise_name == "gaussian" else "cauchy")
 
 
 def trimmed_rms(errors: Tensor, trim: float = TRIM) -> float:
@@ -884,13 +903,13 @@ def start_noise_levels(
 ) -> tuple[Tensor, Tensor]:
     """Noise levels for EM after a simulation-error fit: ``Rw`` ``relative`` times the variance of
     each state along the noise-free simulation of the records from ``first_states`` (diagonal,
-    floored at ``relative`` times the largest: :func:`~torch_nssm.estimation.first_stage.
-    held_process_noise`, the held process noise of a simulation model), and ``Rv`` the squared
+    floored at ``relative`` times the largest, the held process noise of a simulation model), and
+    ``Rv`` the squared
     robust scale (1.4826 MAD) of that simulation's output errors per output (diagonal, floored at
     1e-12 times ``y``'s squared spread)."""
     problem = _Problem(model, data, NeuralFirstStageOptions(validation_fraction=0.0))
     states = _simulate_states(model.f, first_states.to(problem.y), problem.u.transpose(0, 1))  # (B, T, nx)
-    Rw = held_process_noise(states.transpose(0, 1), problem.data, relative)
+    Rw = _held_process_noise(states.transpose(0, 1), problem.data, relative)
     errors = problem.record_errors(model.f, model.g, first_states.to(problem.y)) * problem.y_scale
     flat = errors.reshape(-1, problem.p)
     rv = torch.stack(
@@ -903,3 +922,14 @@ def start_noise_levels(
     )
     rv = torch.clamp(torch.nan_to_num(rv, nan=1.0), min=1e-12 * float((problem.y_scale**2).max()))
     return Rw, torch.diag(rv)
+
+
+def _held_process_noise(states: Tensor, data: SequenceBatch, relative: float) -> Tensor:
+    """``relative`` times the variance of each state along a noise-free simulation ``states``
+    ``(T, B, nx)`` of ``data`` (diagonal), floored at ``relative`` times the largest of them (and at
+    ``1e-300``) so that no state is noise-free."""
+    x = torch.cat(data.unpad(states.detach()))  # (n, nx)
+    var = x.var(0) if x.shape[0] > 1 else torch.ones_like(x[0])
+    var = torch.where(torch.isfinite(var), var, torch.ones_like(var))
+    floor = torch.clamp(var.max() * relative, min=1e-300)
+    return torch.diag(torch.clamp(relative * var, min=floor))

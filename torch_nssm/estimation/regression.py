@@ -1,5 +1,5 @@
 """The weighted regressions of the M-step as flattened rows, their loss, and the built-in
-gradient solvers (LBFGS, Adam) for modules without a closed form.
+solvers (LBFGS, Adam, Gauss-Newton) for modules without a closed form.
 
 A solver ``solver(module, params, rows, settings)`` decreases :func:`weighted_loss` of the module
 over :class:`RegressionRows`; :mod:`torch_nssm.estimation.solvers` registers the solvers by name.
@@ -13,7 +13,9 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-__all__ = ["RegressionRows", "SolverSettings", "SolverReport", "weighted_loss", "lbfgs", "adam"]
+__all__ = [
+    "RegressionRows", "SolverSettings", "SolverReport", "weighted_loss", "lbfgs", "adam", "gauss_newton",
+]
 
 
 @dataclass
@@ -236,3 +238,35 @@ def adam(module: nn.Module, params: list[Tensor], rows: RegressionRows, settings
             improved = float(weighted_loss(module, rows)) < before
         stationary = fails >= limit and finite
         _set_vector(params, best_vector if improved else start if stationary else tried)
+
+
+def gauss_newton(
+    module: nn.Module, params: list[Tensor], rows: RegressionRows, settings: SolverSettings
+) -> None:
+    """Levenberg-Marquardt on the whitened weighted residuals (:mod:`.least_squares`), at most
+    ``max_iter`` Jacobians: the M-step for modules with few parameters that are not linear in them
+    (a physical model: a mass that divides, a friction inside a tanh).  Each Jacobian costs a few
+    evaluations of the module on the rows (finite differences, one batch), and a problem that is
+    nearly quadratic in its parameters converges in a few of them where LBFGS needs tens of
+    gradient evaluations."""
+    from .free_parameters import FreeParameters
+    from .least_squares import levenberg_marquardt
+
+    free = FreeParameters({"m": module})
+    d = rows.target.shape[-1]
+    L = torch.linalg.cholesky(rows.precision + 0.0)  # P = L L^T; residual^T P residual = |r L|^2
+    missing = torch.isnan(rows.target)
+    target = torch.where(missing, torch.zeros_like(rows.target), rows.target)
+
+    @torch.inference_mode()
+    def residuals(thetas: Tensor, _local: Tensor) -> Tensor:
+        out = free.map(lambda forward, x, u: forward("m", x, u), thetas, rows.x, rows.u)  # (S, n, d)
+        r = torch.where(missing, torch.zeros_like(out), target - out)
+        r = (r.unsqueeze(-2) @ L).squeeze(-2)
+        return r.reshape(thetas.shape[0], 1, -1)
+
+    weight = rows.weight.repeat_interleave(d).unsqueeze(0)
+    theta = free.vector()
+    local = theta.new_zeros(1, 0)
+    result = levenberg_marquardt(residuals, theta, local, weight, max_iter=settings.max_iter, ftol=1e-10)
+    free.assign(result.theta)

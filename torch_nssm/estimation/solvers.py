@@ -16,7 +16,7 @@ from typing import Callable
 import torch
 from torch import nn
 
-from .regression import RegressionRows, SolverReport, SolverSettings, adam, lbfgs, weighted_loss
+from .regression import RegressionRows, SolverReport, SolverSettings, adam, gauss_newton, lbfgs, weighted_loss
 
 __all__ = [
     "SOLVERS",
@@ -35,7 +35,19 @@ Solver = Callable[[nn.Module, list, RegressionRows, SolverSettings], None]
 SOLVERS: dict[str, Solver] = {
     "lbfgs": lbfgs,
     "adam": adam,
+    "gauss-newton": gauss_newton,
 }
+
+
+#: ``optimizer="auto"`` takes Gauss-Newton for modules with at most this many free parameters (a
+#: physical model), LBFGS for more (a network: its Jacobian would cost one evaluation a parameter).
+GAUSS_NEWTON_MAX_PARAMETERS = 64
+
+
+def auto_solver(module: nn.Module) -> str:
+    """The solver ``optimizer="auto"`` takes for ``module``."""
+    n = sum(p.numel() for p in module.parameters() if p.requires_grad)
+    return "gauss-newton" if n <= GAUSS_NEWTON_MAX_PARAMETERS else "lbfgs"
 
 
 def get_solver(name: str) -> Solver:
@@ -43,7 +55,7 @@ def get_solver(name: str) -> Solver:
     try:
         return SOLVERS[name]
     except KeyError:
-        raise ValueError(f"optimizer must be one of {sorted(SOLVERS)}, got {name!r}") from None
+        raise ValueError(f"optimizer must be one of {sorted([*SOLVERS, 'auto'])}, got {name!r}") from None
 
 
 def fit_weighted_regression(
@@ -66,7 +78,7 @@ def fit_weighted_regression(
     if hasattr(module, "solve_weighted_least_squares"):
         module.solve_weighted_least_squares(rows.x, rows.u, rows.target, rows.weight, rows.precision)
     else:
-        get_solver(optimizer)(module, params, rows, settings)
+        get_solver(auto_solver(module) if optimizer == "auto" else optimizer)(module, params, rows, settings)
     for p in params:
         p.grad = None
     with torch.no_grad():

@@ -215,27 +215,8 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
             se_ours = est.standard_errors_  # docs/uncertainty.md
         standard_errors[frac] = (float(se_ours["f.theta1"]), float(se_ours["f.theta2"]))
         err[frac] = (abs(t1 - 1.0) * 100, abs(t2 - 1.0) * 100)
-        it1 = _iterations_to(_scalar(est.history_["f.theta1"]), 1.0, 0.01)
-        it2 = _iterations_to(_scalar(est.history_["f.theta2"]), 1.0, 0.01)
-        pp = PAPER["table2"][frac]
         oracle[frac] = manipulator_kalman_mle(data)
-        (o1, o2), (se1, se2) = oracle[frac]["theta"], oracle[frac]["se"]
-        rows.append(
-            [
-                f"{frac:.0%}",
-                t1,
-                f"{err[frac][0]:.2f}%",
-                f"{pp[0]:.4f} ({pp[1]:.2f}%)",
-                t2,
-                f"{err[frac][1]:.2f}%",
-                f"{pp[2]:.4f} ({pp[3]:.2f}%)",
-                f"{o1:.4f} ± {se1:.4f}",
-                f"{o2:.4f} ± {se2:.4f}",
-                f"{it1} / {it2}",
-                f"{secs:.1f}",
-                f"{standard_errors[frac][0]:.4f} / {standard_errors[frac][1]:.4f}",
-            ]
-        )
+        rows.append(_table2_row(frac, est, secs, err[frac], standard_errors[frac], oracle[frac]))
     total = time.perf_counter() - t_start
     settings["seconds"] = round(total, 1)
     note = (
@@ -251,26 +232,66 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
         "the data allow), ± its standard error. 's.e. (ours)' = the observed-information standard errors "
         "of our fit (Louis' identity from the particle smoother, docs/uncertainty.md)."
     )
-    table = _write_table(
-        out,
-        "table2",
-        [
-            "outliers",
-            "theta1",
-            "error",
-            "paper theta1",
-            "theta2",
-            "error",
-            "paper theta2",
-            "exact MLE theta1",
-            "exact MLE theta2",
-            "iterations to 1%",
-            "seconds",
-            "s.e. theta1 / theta2 (ours)",
-        ],
-        rows,
-        note,
+    table = _write_table(out, "table2", TABLE2_HEADER, rows, note)
+    files = _manipulator_figures(out, fits, datas, levels)
+    files += [str(out / "table2.md"), str(out / "table2.csv")]
+    _write_settings(out, "manipulator", settings)
+    return dict(
+        fits=fits,
+        theta=theta,
+        error_rate=err,
+        oracle=oracle,
+        standard_errors=standard_errors,
+        table=table,
+        files=files,
+        settings=settings,
+        seconds=total,
     )
+
+
+def _table2_row(frac: float, est, secs: float, err: tuple, se: tuple, oracle: dict) -> list:
+    """Table 2's row of the fit ``est`` at outlier fraction ``frac``."""
+    t1, t2 = est.f_.theta1.item(), est.f_.theta2.item()
+    it1 = _iterations_to(_scalar(est.history_["f.theta1"]), 1.0, 0.01)
+    it2 = _iterations_to(_scalar(est.history_["f.theta2"]), 1.0, 0.01)
+    pp = PAPER["table2"][frac]
+    (o1, o2), (se1, se2) = oracle["theta"], oracle["se"]
+    return [
+        f"{frac:.0%}",
+        t1,
+        f"{err[0]:.2f}%",
+        f"{pp[0]:.4f} ({pp[1]:.2f}%)",
+        t2,
+        f"{err[1]:.2f}%",
+        f"{pp[2]:.4f} ({pp[3]:.2f}%)",
+        f"{o1:.4f} ± {se1:.4f}",
+        f"{o2:.4f} ± {se2:.4f}",
+        f"{it1} / {it2}",
+        f"{secs:.1f}",
+        f"{se[0]:.4f} / {se[1]:.4f}",
+    ]
+
+
+#: Columns of Table 2.
+TABLE2_HEADER = [
+    "outliers",
+    "theta1",
+    "error",
+    "paper theta1",
+    "theta2",
+    "error",
+    "paper theta2",
+    "exact MLE theta1",
+    "exact MLE theta2",
+    "iterations to 1%",
+    "seconds",
+    "s.e. theta1 / theta2 (ours)",
+]
+
+
+def _manipulator_figures(out, fits: dict, datas: dict, levels) -> list[str]:
+    """Figs. 10/12 (the parameter trajectories) and Fig. 11 (the outputs at 10 % outliers coloured
+    by outlier weight); the files written."""
     plt = _pyplot()
     fig, axes = plt.subplots(1, 2, figsize=(11, 3.5))
     for frac in levels:
@@ -293,16 +314,4 @@ def manipulator(fast: bool = False, out_dir="reproduction", seed: int = 0, progr
         axes[i].set_ylabel(f"phi{i + 1} (rad)")
     fig.suptitle("Fig. 11: manipulator outputs, 10% outliers, coloured by outlier weight")
     files.append(_savefig(fig, out / "manipulator_outliers.png"))
-    files += [str(out / "table2.md"), str(out / "table2.csv")]
-    _write_settings(out, "manipulator", settings)
-    return dict(
-        fits=fits,
-        theta=theta,
-        error_rate=err,
-        oracle=oracle,
-        standard_errors=standard_errors,
-        table=table,
-        files=files,
-        settings=settings,
-        seconds=total,
-    )
+    return files

@@ -336,54 +336,11 @@ def table1(
     mean, std = est.mean(0), est.std(0, ddof=1) if len(est) > 1 else np.zeros(3)
     bias_norm = float(np.linalg.norm(theta - mean))
     bias_norm_last = float(np.linalg.norm(theta - last.mean(0)))
-    # bias norm after each iteration k of the estimates averaged over iterates max(1, k-9)..k (index 0
-    # = the initial values); a 50-iterate window would drag the early iterates along
     window = 10
-
-    def averaged(k: int) -> np.ndarray:
-        return hist[:, max(1, k - window + 1) : k + 1].mean(1) if k > 0 else hist[:, 0]
-
-    bn_path = np.array([np.linalg.norm(theta - averaged(k).mean(0)) for k in range(hist.shape[1])])
-    # the issue's budget: 50 iterations, the last 10 of them averaged
-    k50 = min(50, hist.shape[1] - 1)
-    bias_norm_50 = float(bn_path[k50])
-    std_50 = averaged(k50).std(0, ddof=1) if len(hist) > 1 else np.zeros(3)
-    below = np.nonzero(bn_path > 0.010)[0]
-    iters_to_target = None if bn_path[-1] > 0.010 else int(below[-1] + 1 if below.size else 0)
+    bn_path, k50, bias_norm_50, std_50, iters_to_target = _bias_norm_path(hist, theta, window)
     p = PAPER["table1"]
-    rows = [
-        [
-            name,
-            true,
-            f"{p[name][0]:.4f} ± {p[name][1]:.4f}",
-            f"{mean[i]:.4f} ± {std[i]:.4f}",
-            f"{last[:, i].mean():.4f} ± {last[:, i].std(ddof=1) if len(last) > 1 else 0.0:.4f}",
-            f"{se[:, i].mean():.4f}",
-        ]
-        for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0)))
-    ]
-    rows.append(
-        [
-            "bias norm",
-            0.0,
-            f"{p['bias_norm']:.4f} (Huang: {p['bias_norm_huang']:.4f})",
-            f"{bias_norm:.4f}",
-            f"{bias_norm_last:.4f}",
-            "",
-        ]
-    )
-    note = (
-        f"{s['n_sets']} data sets (seeds {seed}..{seed + s['n_sets'] - 1}), N = {s['n_samples']}, "
-        f"{s['n_iter']} EM iterations (paper: 250), {s['n_particles']} particles, MCMC smoother, "
-        f"init a=b=c=0.5, batched fit_independent, {secs:.0f} s. 'ours' = mean of the last "
-        f"{s['n_avg']} iterates of each fit; bias norm = ||theta - mean(theta_hat)||. "
-        f"Bias norm <= 0.010 (last {window} iterates averaged) from iteration {iters_to_target} on. "
-        f"After {k50} iterations "
-        f"(last 10 averaged): bias norm {bias_norm_50:.4f}, s.d. "
-        f"{', '.join(f'{v:.4f}' for v in std_50)} (a, b, c). 'mean s.e.' = the mean over the data sets of "
-        "each fit's observed-information standard error (docs/uncertainty.md), to set beside the "
-        "s.d. of the estimates over the data sets."
-    )
+    rows = _table1_rows(p, mean, std, last, se, bias_norm, bias_norm_last)
+    note = _table1_note(s, seed, secs, window, iters_to_target, k50, bias_norm_50, std_50)
     header = [
         "parameter", "true", "paper (250 it.)", f"ours (avg last {s['n_avg']})", "ours (last iterate)",
         "mean s.e. (ours)",
@@ -394,20 +351,7 @@ def table1(
         w.writerow(["seed", "a", "b", "c", "a_last", "b_last", "c_last"])
         for i in range(len(est)):
             w.writerow([seed + i, *est[i], *last[i]])
-    plt = _pyplot()
-    fig, axes = plt.subplots(1, 4, figsize=(13, 3))
-    for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0))):
-        axes[i].hist(est[:, i], bins=min(20, max(3, len(est) // 4)))
-        axes[i].axvline(true, color="k", ls="--")
-        axes[i].set_title(f"{name}: {mean[i]:.4f} ± {std[i]:.4f}")
-    axes[3].semilogy(bn_path)
-    axes[3].axhline(p["bias_norm"], color="r", ls="--", lw=0.8, label="paper 0.0216")
-    axes[3].axhline(0.010, color="g", ls=":", lw=0.8, label="target 0.010")
-    axes[3].set_xlabel("EM iteration")
-    axes[3].set_title(f"bias norm (last {window} iterates averaged)", fontsize=9)
-    axes[3].legend(fontsize=7)
-    fig.suptitle(f"Table 1: {s['n_sets']} Monte Carlo runs, Cauchy noise, N={s['n_samples']}")
-    fig.tight_layout()
+    fig = _table1_figure(est, mean, std, bn_path, p["bias_norm"], window, s)
     files = [
         _savefig(fig, out / "table1.png"),
         str(out / "table1.md"),
@@ -433,3 +377,83 @@ def table1(
         settings=settings,
         seconds=secs,
     )
+
+
+def _bias_norm_path(hist: np.ndarray, theta: np.ndarray, window: int) -> tuple:
+    """The bias norm after each iteration ``k`` of the estimates averaged over iterates
+    ``max(1, k - window + 1)..k`` (index 0 = the initial values; a 50-iterate window would drag the
+    early iterates along); the iteration ``k50`` of the issue's budget (50 iterations, the last 10
+    averaged), the bias norm and the s.d. there, and the iteration from which the bias norm stays
+    at most 0.010 (``None`` if it does not end there)."""
+
+    def averaged(k: int) -> np.ndarray:
+        return hist[:, max(1, k - window + 1) : k + 1].mean(1) if k > 0 else hist[:, 0]
+
+    bn_path = np.array([np.linalg.norm(theta - averaged(k).mean(0)) for k in range(hist.shape[1])])
+    k50 = min(50, hist.shape[1] - 1)
+    bias_norm_50 = float(bn_path[k50])
+    std_50 = averaged(k50).std(0, ddof=1) if len(hist) > 1 else np.zeros(3)
+    below = np.nonzero(bn_path > 0.010)[0]
+    iters_to_target = None if bn_path[-1] > 0.010 else int(below[-1] + 1 if below.size else 0)
+    return bn_path, k50, bias_norm_50, std_50, iters_to_target
+
+
+def _table1_note(s: dict, seed: int, secs: float, window: int, iters_to_target, k50, bias_norm_50, std_50):
+    """The note under Table 1: the settings and how the bias norm evolved."""
+    return (
+        f"{s['n_sets']} data sets (seeds {seed}..{seed + s['n_sets'] - 1}), N = {s['n_samples']}, "
+        f"{s['n_iter']} EM iterations (paper: 250), {s['n_particles']} particles, MCMC smoother, "
+        f"init a=b=c=0.5, batched fit_independent, {secs:.0f} s. 'ours' = mean of the last "
+        f"{s['n_avg']} iterates of each fit; bias norm = ||theta - mean(theta_hat)||. "
+        f"Bias norm <= 0.010 (last {window} iterates averaged) from iteration {iters_to_target} on. "
+        f"After {k50} iterations "
+        f"(last 10 averaged): bias norm {bias_norm_50:.4f}, s.d. "
+        f"{', '.join(f'{v:.4f}' for v in std_50)} (a, b, c). 'mean s.e.' = the mean over the data sets of "
+        "each fit's observed-information standard error (docs/uncertainty.md), to set beside the "
+        "s.d. of the estimates over the data sets."
+    )
+
+
+def _table1_rows(p: dict, mean, std, last, se, bias_norm: float, bias_norm_last: float) -> list:
+    """Table 1's rows: each parameter beside the paper's, and the bias norm."""
+    rows = [
+        [
+            name,
+            true,
+            f"{p[name][0]:.4f} ± {p[name][1]:.4f}",
+            f"{mean[i]:.4f} ± {std[i]:.4f}",
+            f"{last[:, i].mean():.4f} ± {last[:, i].std(ddof=1) if len(last) > 1 else 0.0:.4f}",
+            f"{se[:, i].mean():.4f}",
+        ]
+        for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0)))
+    ]
+    rows.append(
+        [
+            "bias norm",
+            0.0,
+            f"{p['bias_norm']:.4f} (Huang: {p['bias_norm_huang']:.4f})",
+            f"{bias_norm:.4f}",
+            f"{bias_norm_last:.4f}",
+            "",
+        ]
+    )
+    return rows
+
+
+def _table1_figure(est, mean, std, bn_path, paper_bias_norm: float, window: int, s: dict):
+    """Histograms of the estimates and the bias norm along the iterations."""
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 4, figsize=(13, 3))
+    for i, (name, true) in enumerate((("a", 0.9), ("b", 1.0), ("c", 1.0))):
+        axes[i].hist(est[:, i], bins=min(20, max(3, len(est) // 4)))
+        axes[i].axvline(true, color="k", ls="--")
+        axes[i].set_title(f"{name}: {mean[i]:.4f} ± {std[i]:.4f}")
+    axes[3].semilogy(bn_path)
+    axes[3].axhline(paper_bias_norm, color="r", ls="--", lw=0.8, label="paper 0.0216")
+    axes[3].axhline(0.010, color="g", ls=":", lw=0.8, label="target 0.010")
+    axes[3].set_xlabel("EM iteration")
+    axes[3].set_title(f"bias norm (last {window} iterates averaged)", fontsize=9)
+    axes[3].legend(fontsize=7)
+    fig.suptitle(f"Table 1: {s['n_sets']} Monte Carlo runs, Cauchy noise, N={s['n_samples']}")
+    fig.tight_layout()
+    return fig

@@ -1,30 +1,52 @@
 """The measurement-noise protocol and the masked scale matrix shared by every noise family.
 
-A noise family is a frozen dataclass of tensors (its parameters, e.g. ``Rv`` and ``dof``) that
-subclasses :class:`MeasurementNoise` and implements a handful of methods:
+A noise family is one file with two classes:
 
-* the filter's per-step log-density (:meth:`MeasurementNoise.evaluator`), its hot loop;
-* the E-step's latent-scale expectations (:meth:`~MeasurementNoise.latent_expectations`);
-* the M-step's sufficient statistics and closed-form update (:meth:`~MeasurementNoise.statistics`,
-  :meth:`~MeasurementNoise.updated`);
-* sampling (:meth:`~MeasurementNoise.sample`) and a plain log-density (:meth:`~MeasurementNoise.log_prob`).
+* a *specification* (:class:`NoiseSpec`, a frozen dataclass of plain values): what the user passes
+  as ``noise=`` -- the family, the initial values of its parameters other than ``Rv`` and its
+  options (which parameters are estimated, their bounds);
+* the *noise model* (:class:`MeasurementNoise`, a frozen dataclass of tensors, its parameters such
+  as ``Rv`` and ``dof``, carrying its specification) with the methods that use them:
 
-Parameters may carry a leading batch dimension (one model per data set in independent fits).
-Missing output components are handled by masking the scale matrix (:func:`masked_scale`).
+  - the filter's per-step log-density (:meth:`MeasurementNoise.evaluator`), its hot loop;
+  - the E-step's latent-scale expectations (:meth:`~MeasurementNoise.latent_expectations`);
+  - the M-step's sufficient statistics and closed-form update (:meth:`~MeasurementNoise.statistics`,
+    :meth:`~MeasurementNoise.updated`);
+  - sampling (:meth:`~MeasurementNoise.sample`) and a plain log-density (:meth:`~MeasurementNoise.log_prob`);
+  - what the observed information needs (:meth:`~MeasurementNoise.residual_log_prob` on the working
+    scales ``WORKING``, and optional closed forms of its scores and Hessian).
+
+The registry (``core/noise/__init__.py``) maps a name to the noise model's class, whose ``SPEC``
+is its specification.  Parameters may carry a leading batch dimension (one model per data set in
+independent fits).  Missing output components are handled by masking the scale matrix
+(:func:`masked_scale`).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["MeasurementNoise", "NoiseEvaluator", "MaskedScale", "masked_scale", "step_views", "symmetric_pd"]
+from ..scales import LOG_CHOLESKY, WorkingScale
+
+__all__ = [
+    "MeasurementNoise",
+    "NoiseSpec",
+    "NoiseEvaluator",
+    "MaskedScale",
+    "masked_scale",
+    "random_source",
+    "step_views",
+    "symmetric_pd",
+]
 
 
 @dataclass
@@ -146,34 +168,105 @@ class NoiseEvaluator:
 
 
 @dataclass(frozen=True)
+class NoiseSpec:
+    """Base class of the families' specifications: what ``noise=`` takes (see the module docstring).
+
+    A specification holds plain values (initial values of the family's parameters other than
+    ``Rv``, which parameters are estimated, bounds), so that scikit-learn's ``clone`` copies it and
+    ``get_params`` shows it; the tensors live in the noise model it makes (:meth:`initial`).
+    """
+
+    #: Registry name (the estimator's ``noise=`` string).
+    name: ClassVar[str] = ""
+    #: The family's noise model class (set by the class whose ``SPEC`` this is).
+    noise_model: ClassVar[type[MeasurementNoise]]
+
+    @classmethod
+    def from_shortcuts(cls, **shortcuts: Any) -> NoiseSpec:
+        """The specification from the estimator's shortcut parameters (``NOISE_SHORTCUTS`` of the
+        registry, e.g. ``dof_init``): a family reads those it has and ignores the others."""
+        return cls()
+
+    def initial(self, Rv: Tensor) -> MeasurementNoise:
+        """The noise model at the initial values: ``Rv`` and this specification's (none here: a
+        family with other parameters makes their tensors)."""
+        return self.state(Rv=Rv)
+
+    def state(self, **params: Tensor) -> MeasurementNoise:
+        """The noise model at the parameter values ``params`` (e.g. the fitted ``Rv_``, ``dof_``),
+        carrying this specification."""
+        return self.noise_model(**params, spec=self)
+
+    def starting_at(self, noise: MeasurementNoise) -> NoiseSpec:
+        """This specification with its initial values at ``noise``'s (a warm start, the bootstrap)."""
+        return self
+
+    def initial_shortcuts(self) -> dict[str, Any]:
+        """Its initial values as the estimator's shortcut parameters (e.g. ``{"dof_init": 3.2}``)."""
+        return {}
+
+
+#: More than this share of the samples with an outlier weight below 0.5 is reported after a fit:
+#: the noise model may be absorbing model error (genuinely Cauchy noise down-weights about a third).
+DOWNWEIGHTED_SHARE = 0.4
+
+
+def downweighted_share(weights) -> float:
+    """Share of the finite outlier ``weights`` (an array or a list of them) below 0.5."""
+    ws = weights if isinstance(weights, list) else [weights]
+    w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
+    w = w[np.isfinite(w)]
+    return float(np.mean(w < 0.5)) if w.size else 0.0
+
+
+@dataclass(frozen=True)
 class MeasurementNoise:
-    """Base class of the measurement-noise families (see the module docstring).
+    """Base class of the noise models (see the module docstring).
 
     Every family has the scale matrix ``Rv`` of shape ``(..., p, p)``; the other fields are
-    family-specific parameters.  ``CORE_DIMS`` gives each field's number of non-batch dimensions.
+    family-specific parameters, listed with their number of non-batch dimensions in
+    ``CORE_DIMS``.  ``spec`` is the specification the model was made from (its options); the
+    family's default specification when not given.
     """
 
     Rv: Tensor
+    spec: NoiseSpec | None = field(default=None, kw_only=True, compare=False, repr=False)
 
     #: Registry name (the estimator's ``noise=`` value).
     name: ClassVar[str] = ""
-    #: Non-batch dimensions of each parameter.
+    #: The family's specification class.
+    SPEC: ClassVar[type[NoiseSpec]] = NoiseSpec
+    #: The parameters, in order, and the number of non-batch dimensions of each.
     CORE_DIMS: ClassVar[dict[str, int]] = {"Rv": 2}
+    #: The working scale of each parameter (standard errors, extrapolation).
+    WORKING: ClassVar[dict[str, WorkingScale]] = {"Rv": LOG_CHOLESKY}
     #: Whether the latent scales are per output component (shape ``(..., p)``) or per sample.
     per_component: ClassVar[bool] = False
 
-    # ------------------------------------------------------------------ construction, batching
-    @classmethod
-    def initial(cls, Rv: Tensor, dof: float) -> MeasurementNoise:
-        """The noise model at the estimator's initial values (``dof`` ignored where unused)."""
-        raise NotImplementedError
+    def __init_subclass__(cls, **kwargs: Any):
+        super().__init_subclass__(**kwargs)
+        if "SPEC" in cls.__dict__:  # a family's noise model: its specification makes it
+            cls.SPEC.noise_model = cls
 
+    def __post_init__(self):
+        if self.spec is None:
+            object.__setattr__(self, "spec", self.SPEC())
+
+    # ------------------------------------------------------------------ construction, batching
     def parameters(self) -> dict[str, Tensor]:
-        """The parameters by name (the keys of ``history_``)."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        """The parameters by name (the keys of ``history_`` and the fitted attributes ``<name>_``)."""
+        return {name: getattr(self, name) for name in self.CORE_DIMS}
 
     def replace(self, **params: Any) -> MeasurementNoise:
         return dataclasses.replace(self, **params)
+
+    def at(self, **params: Tensor) -> MeasurementNoise:
+        """A copy with the parameters ``params`` replaced, unchecked (values an autograd transform
+        differentiates, which a family's checks could not read)."""
+        new = copy.copy(self)
+        for name, value in params.items():
+            object.__setattr__(new, name, value)
+        return new
 
     def to(self, **kwargs: Any) -> MeasurementNoise:
         return self.replace(**{k: v.to(**kwargs) for k, v in self.parameters().items()})
@@ -195,23 +288,59 @@ class MeasurementNoise:
 
     @classmethod
     def stack(cls, noises: list[MeasurementNoise]) -> MeasurementNoise:
-        """One batched noise model from unbatched ones (independent fits)."""
+        """One batched noise model from unbatched ones (independent fits; the first one's
+        specification)."""
         names = noises[0].parameters()
-        return cls(**{n: torch.stack([getattr(m, n) for m in noises]) for n in names})
+        return cls(**{n: torch.stack([getattr(m, n) for m in noises]) for n in names}, spec=noises[0].spec)
 
     def unstack(self) -> list[MeasurementNoise]:
         """The unbatched noise models of a batched one."""
         params = self.parameters()
         return [self.replace(**{n: v[b] for n, v in params.items()}) for b in range(self.Rv.shape[0])]
 
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        """The relative standard error of each positive parameter (complete data: the latent scales
+        known) at ``n_obs`` observations, by name: EM has converged in a parameter once its changes
+        are small against this (:func:`torch_nssm.estimation.convergence.has_converged`).  A
+        variance estimated from ``n`` samples has relative standard error ``sqrt(2 / n)``."""
+        return {"Rv": torch.full_like(self.Rv, math.sqrt(2.0 / max(n_obs, 1)))}
+
     def is_valid(self) -> Tensor:
-        """Finite parameters and a positive-definite ``Rv``, per batch entry (shape ``(...)``)."""
+        """Admissible parameters (:meth:`admissible`) and a positive-definite ``Rv``, per batch entry
+        (shape ``(...)``)."""
         ok = torch.linalg.cholesky_ex(self.Rv).info == 0
         for name, v in self.parameters().items():
             core = self.CORE_DIMS[name]
-            finite = torch.isfinite(v) | (torch.isinf(v) & (v > 0) if name == "dof" else False)
+            finite = self.admissible(name, v)
             ok = ok & (finite.flatten(v.dim() - core).all(-1) if core else finite)
         return ok
+
+    def admissible(self, name: str, value: Tensor) -> Tensor:
+        """Per entry, whether ``value`` is a valid value of parameter ``name``: finite."""
+        return torch.isfinite(value)
+
+    # ------------------------------------------------------------------ the estimator's view
+    def attributes(self) -> dict[str, Any]:
+        """The estimator's fitted attributes (``Rv_``, ...) without the trailing underscore: the
+        parameters, 0-dimensional ones as floats, the others as arrays."""
+        return {
+            name: float(v) if v.dim() == 0 else v.detach().cpu().numpy()
+            for name, v in self.parameters().items()
+        }
+
+    def absorption_message(self, weights) -> str | None:
+        """Words for a fit whose noise model explains too much of the data (``None`` if it does
+        not), from its outlier ``weights``: more than :data:`DOWNWEIGHTED_SHARE` of the samples
+        weighted below 0.5."""
+        share = downweighted_share(weights)
+        if share <= DOWNWEIGHTED_SHARE:
+            return None
+        return (
+            f"the measurement noise absorbs much of the data: {100 * share:.0f} % of the samples have an "
+            "outlier weight below 0.5. Unless the sensors really have that many outliers, the noise model "
+            "is absorbing what f and g cannot explain (model error, not outliers): check the residuals "
+            "(torch_nssm.diagnostics) or improve the model"
+        )
 
     # ------------------------------------------------------------------ the filter
     def evaluator(self, scale: MaskedScale, n_particles: int) -> NoiseEvaluator:
@@ -248,15 +377,153 @@ class MeasurementNoise:
         raise NotImplementedError
 
     def updated(
-        self, stats: dict[str, Tensor], *, fit_Rv: bool, fit_dof: bool, dof_bounds
+        self, stats: dict[str, Tensor], *, fit_Rv: bool = True, fit_shape: bool = True
     ) -> MeasurementNoise:
-        """The closed-form update from pooled ``stats`` (as from :meth:`statistics`, batch as
-        this model's)."""
+        """The closed-form update from pooled ``stats`` (as from :meth:`statistics`, batch as this
+        model's): ``Rv`` if ``fit_Rv``, the other parameters its specification estimates if
+        ``fit_shape`` (``False`` holds them all)."""
         raise NotImplementedError
 
-    def sample(self, shape: tuple[int, ...], generator: torch.Generator | None = None) -> Tensor:
-        """Draws of shape ``shape + (p,)`` (unbatched parameters)."""
+    def sample(self, shape: tuple[int, ...], generator=None) -> Tensor:
+        """Draws of shape ``shape + (p,)`` (unbatched parameters); ``generator``: a
+        ``torch.Generator`` (or ``None``, the global stream) or a ``numpy.random.Generator``
+        (:func:`random_source`)."""
         raise NotImplementedError
+
+    # ------------------------------------------------------------------ the observed information
+    def estimated(self, fit_Rv: bool = True, fit_shape: bool = True) -> list[str]:
+        """The parameters a fit estimates (their standard errors, the bootstrap's samples): ``Rv``
+        if ``fit_Rv``, the others if ``fit_shape``."""
+        return [n for n in self.CORE_DIMS if (fit_Rv if n == "Rv" else fit_shape)]
+
+    def bounds(self, name: str) -> tuple[float, float] | None:
+        """The bracket of parameter ``name`` (extrapolated values are clipped to it), if any."""
+        return None
+
+    def residual_log_prob(self, r: Tensor, mask: Tensor, all_observed: bool) -> Tensor:
+        """Log-density of residual rows ``r`` ``(..., p)`` (zero where ``mask`` is False) over their
+        observed components, differentiable in this model's tensors (the observed information
+        evaluates it at parameters on their working scales, :meth:`at`).  ``all_observed``: every
+        component of every row is observed."""
+        raise NotImplementedError(
+            f"the noise family {self.name!r} has no residual_log_prob: no standard errors for it"
+        )
+
+    @property
+    def is_gaussian(self) -> bool:
+        """Whether the residuals are ``N(0, Rv)`` (every latent scale 1): the observed information
+        then writes the observation term with the rows' moments."""
+        return False
+
+    def scores_in_closed_form(self, all_observed: bool) -> bool:
+        """Whether :meth:`residual_scores` applies (``all_observed``: every component observed)."""
+        return False
+
+    def residual_scores(self, r: Tensor, mask: Tensor, weight: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """``weight`` ``(R, 1)`` times the gradient of :meth:`residual_log_prob` per row ``(R, p)``:
+        in the mean (``(R, p)``) and in each parameter's working coordinates (``{name: (R, k)}``),
+        where :meth:`scores_in_closed_form`."""
+        raise NotImplementedError
+
+    @property
+    def elliptical(self) -> bool:
+        """Whether :meth:`elliptical_terms` applies: a log-density ``h(q) - log det C`` of the
+        squared norm ``q = |C^-1 r|^2`` of a residual (``Rv = C C^T``)."""
+        return False
+
+    def elliptical_terms(
+        self, q: Tensor, p: int, names: Sequence[str] = ()
+    ) -> tuple[Tensor, Tensor, dict[str, tuple[Tensor, Tensor]]] | None:
+        """Where :attr:`elliptical`, per row of squared norms ``q`` of ``p`` components: ``lam = -2
+        h_q``, ``h_qq``, and for each scalar parameter ``theta`` in ``names`` (those estimated, other
+        than ``Rv``) on its working scale ``s`` the derivatives ``d2h / dq ds`` and ``d2h / ds2``
+        (``{name: (cross, second)}``); ``None`` if the family has no such form (the observed
+        information then differentiates :meth:`residual_log_prob`)."""
+        return None
+
+
+# ---------------------------------------------------------------------------- random draws
+def psd_sqrt(cov: np.ndarray) -> np.ndarray:
+    """A matrix ``S`` with ``S S^T = cov`` (works for singular PSD matrices)."""
+    vals, vecs = np.linalg.eigh(cov)
+    return vecs * np.sqrt(np.clip(vals, 0.0, None))
+
+
+class _TorchDraws:
+    """Draws from a ``torch.Generator`` (``None``: the global stream)."""
+
+    def __init__(self, generator: torch.Generator | None, like: Tensor):
+        self.generator, self.dtype, self.device = generator, like.dtype, like.device
+
+    def standard_normal(self, shape: tuple[int, ...]) -> Tensor:
+        return torch.randn(*shape, dtype=self.dtype, device=self.device, generator=self.generator)
+
+    def gaussian(self, shape: tuple[int, ...], cov: Tensor) -> Tensor:
+        """``N(0, cov)`` draws ``shape + (p,)``."""
+        chol = torch.linalg.cholesky(cov)
+        return self.standard_normal((*shape, chol.shape[-1])) @ chol.transpose(-1, -2)
+
+    def gamma(self, concentration: Tensor, rate: Tensor | float) -> Tensor:
+        """``Gamma(concentration, rate)`` draws shaped like ``concentration``."""
+        return standard_gamma(concentration, self.generator) / rate
+
+    def scale_mixture(self, z: Tensor, concentration: Tensor, rate: Tensor | float) -> Tensor:
+        """Gaussian draws ``z`` ``(..., p)`` over the square roots of ``Gamma(concentration, rate)``
+        draws shaped like ``z`` (one per component) or ``z.shape[:-1]`` (one per row)."""
+        root = torch.sqrt(self.gamma(concentration, rate))
+        return z / (root if concentration.dim() == z.dim() else root.unsqueeze(-1))
+
+    def uniform(self, shape: tuple[int, ...]) -> Tensor:
+        return torch.rand(*shape, dtype=self.dtype, device=self.device, generator=self.generator)
+
+
+class _NumpyDraws:
+    """Draws from a ``numpy.random.Generator`` (the simulated data sets), as tensors like ``like``."""
+
+    def __init__(self, rng: np.random.Generator, like: Tensor):
+        self.rng, self.dtype, self.device = rng, like.dtype, like.device
+
+    def _tensor(self, a: np.ndarray) -> Tensor:
+        return torch.as_tensor(a, dtype=self.dtype, device=self.device)
+
+    def standard_normal(self, shape: tuple[int, ...]) -> Tensor:
+        return self._tensor(self.rng.standard_normal(shape))
+
+    def gaussian(self, shape: tuple[int, ...], cov: Tensor) -> Tensor:
+        c = cov.detach().cpu().numpy()
+        return self._tensor(self.rng.standard_normal((*shape, c.shape[-1])) @ psd_sqrt(c).T)
+
+    def _gamma(self, concentration: Tensor, rate: Tensor | float) -> np.ndarray:
+        k = concentration.detach().cpu().numpy()
+        r = np.asarray(rate.detach().cpu().numpy() if isinstance(rate, Tensor) else rate, dtype=float)
+        if k.size and r.size == 1 and np.all(k == k.flat[0]):  # one shape and rate: NumPy's scalar path
+            return self.rng.gamma(shape=float(k.flat[0]), scale=1.0 / float(r), size=k.shape)
+        return self.rng.gamma(shape=k, scale=1.0 / r)
+
+    def gamma(self, concentration: Tensor, rate: Tensor | float) -> Tensor:
+        return self._tensor(self._gamma(concentration, rate))
+
+    def scale_mixture(self, z: Tensor, concentration: Tensor, rate: Tensor | float) -> Tensor:
+        # in NumPy from the draws on (its square root and division are not always torch's to the bit)
+        root = np.sqrt(self._gamma(concentration, rate))
+        root = root if concentration.dim() == z.dim() else root[..., None]
+        return self._tensor(z.detach().cpu().numpy() / root)
+
+    def uniform(self, shape: tuple[int, ...]) -> Tensor:
+        return self._tensor(self.rng.random(shape))
+
+
+def random_source(generator, like: Tensor) -> _TorchDraws | _NumpyDraws:
+    """The draws of the families' samplers from ``generator``: a ``torch.Generator`` or ``None``
+    (the global stream), or a ``numpy.random.Generator`` (the simulated data sets' streams, whose
+    records stay the same numbers whatever torch does); tensors of ``like``'s dtype and device.
+
+    Its methods: ``standard_normal(shape)``, ``gaussian(shape, cov)`` (``N(0, cov)``, a trailing
+    ``p``), ``uniform(shape)``, ``gamma(concentration, rate)`` and ``scale_mixture(z, concentration,
+    rate)`` (``z`` over the square roots of gamma draws)."""
+    if isinstance(generator, np.random.Generator):
+        return _NumpyDraws(generator, like)
+    return _TorchDraws(generator, like)
 
 
 def gaussian_log_normaliser(n_obs: Tensor, logdet: Tensor) -> Tensor:

@@ -2,15 +2,27 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, gaussian_log_normaliser, masked_scale
+from .base import MaskedScale, NoiseSpec, gaussian_log_normaliser, masked_scale, random_source
 from .joint import JointScaleNoise, SquaredNormEvaluator
 
-__all__ = ["GaussianNoise"]
+__all__ = ["Gaussian", "GaussianNoise"]
+
+
+@dataclass(frozen=True)
+class Gaussian(NoiseSpec):
+    """Gaussian measurement noise ``v ~ N(0, Rv)``: the non-robust baseline (``noise="gaussian"``).
+
+    It has no parameter besides ``Rv``, so it ignores the estimator's ``dof_init``, ``fit_dof`` and
+    ``dof_bounds``.
+    """
+
+    name = "gaussian"
 
 
 class _GaussianEvaluator(SquaredNormEvaluator):
@@ -35,10 +47,12 @@ class GaussianNoise(JointScaleNoise):
     """``v ~ N(0, Rv)``: every latent scale is 1, so no sample is down-weighted."""
 
     name = "gaussian"
+    SPEC = Gaussian
 
-    @classmethod
-    def initial(cls, Rv: Tensor, dof: float) -> GaussianNoise:
-        return cls(Rv=Rv)
+    def attributes(self):
+        """``Rv``, and ``dof = inf`` (the Student-t limit), so that Gaussian and robust fits compare
+        attribute by attribute."""
+        return {**super().attributes(), "dof": math.inf}
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _GaussianEvaluator:
         return _GaussianEvaluator(gaussian_log_normaliser(scale.n_obs, scale.logdet), n_particles)
@@ -54,10 +68,19 @@ class GaussianNoise(JointScaleNoise):
         shape = statistics[sl].shape
         return ones.expand(shape), torch.zeros_like(ones).expand(shape)
 
-    def updated(self, stats, *, fit_Rv, fit_dof, dof_bounds) -> GaussianNoise:
+    def updated(self, stats, *, fit_Rv=True, fit_shape=True) -> GaussianNoise:
         return self.replace(Rv=self._updated_scale(stats, fit_Rv))
 
     def sample(self, shape, generator=None) -> Tensor:
-        chol = torch.linalg.cholesky(self.Rv)
-        z = torch.randn(*shape, chol.shape[-1], dtype=chol.dtype, device=chol.device, generator=generator)
-        return z @ chol.transpose(-1, -2)
+        return random_source(generator, self.Rv).gaussian(shape, self.Rv)
+
+    # ------------------------------------------------------------------ the observed information
+    @property
+    def is_gaussian(self) -> bool:
+        return True
+
+    def density_of_norms(self, delta2, logdet, n_obs) -> Tensor:
+        return -0.5 * (n_obs * math.log(2 * math.pi) + logdet + delta2)
+
+    def latent_weight(self, delta2, p, weight):
+        return torch.ones_like(delta2), {}

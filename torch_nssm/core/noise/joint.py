@@ -1,5 +1,6 @@
 """What the noise families with one scale per sample share: the squared Mahalanobis norm of the
-whitened residual as the filter's statistic, and the closed-form update of a full ``Rv``."""
+whitened residual as the filter's statistic, the closed-form update of a full ``Rv``, and the
+observed information's terms of a density that depends on the residual through that norm."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from torch import Tensor
 
 from ... import _workspace
 from ..._ops import small_matmul
+from ..scales import LOG_CHOLESKY, cholesky_and_inverse, log_cholesky_scores
 from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, symmetric_pd
 
 __all__ = ["JointScaleNoise", "SquaredNormEvaluator"]
@@ -38,7 +40,12 @@ class SquaredNormEvaluator(NoiseEvaluator):
 
 @dataclass(frozen=True)
 class JointScaleNoise(MeasurementNoise):
-    """A noise model whose latent scale (if any) multiplies the whole output vector."""
+    """A noise model whose latent scale (if any) multiplies the whole output vector: its density
+    depends on a residual ``r`` through ``delta2 = |C^-1 r|^2`` (``Rv = C C^T``) and ``log det Rv``
+    (:meth:`density_of_norms`), and its latent scale's weight through ``delta2`` alone
+    (:meth:`latent_weight`)."""
+
+    WORKING = {"Rv": LOG_CHOLESKY}
 
     def statistics(self, r, W, e_lam, e_log_lam, scale: MaskedScale, sl: slice) -> dict[str, Tensor]:
         # E[lam r r^T | r_o] = <lam> rhat rhat^T + (R_mm - R_mo R_oo^-1 R_om): the missing part of
@@ -63,3 +70,51 @@ class JointScaleNoise(MeasurementNoise):
             return self.Rv
         n = stats["n_obs"].clamp_min(1)
         return symmetric_pd(stats["scatter"] / n[..., None, None], 1e-10).reshape(self.Rv.shape)
+
+    # ------------------------------------------------------------------ the observed information
+    def density_of_norms(self, delta2: Tensor, logdet: Tensor, n_obs: Tensor) -> Tensor:
+        """Log-density from the squared norms ``delta2``, ``log det`` of the observed block of ``Rv``
+        and the number of observed components (broadcast together)."""
+        raise NotImplementedError
+
+    def latent_weight(self, delta2: Tensor, p: int, weight: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """Per row, ``lam = -2 d log-density / d delta2`` at the squared norms ``delta2`` of ``p``
+        components, and ``weight`` ``(R, 1)`` times the scores of the parameters other than ``Rv``
+        in their working coordinates (``{name: (R, k)}``)."""
+        raise NotImplementedError
+
+    def residual_log_prob(self, r: Tensor, mask: Tensor, all_observed: bool) -> Tensor:
+        Rv = self.Rv
+        m = mask.to(r.dtype)
+        p = r.shape[-1]
+        if all_observed:
+            C = torch.linalg.cholesky(Rv)
+            Ci = torch.linalg.solve_triangular(C, torch.eye(p, dtype=C.dtype, device=C.device), upper=False)
+            z = r @ Ci.transpose(-1, -2)
+            logdet = 2.0 * torch.log(torch.diagonal(C)).sum()
+            n_obs = torch.full(r.shape[:-1], float(p), dtype=r.dtype, device=r.device)
+        else:  # the observed block of Rv, per row
+            eye = torch.eye(p, dtype=r.dtype, device=r.device)
+            Rm = Rv * m.unsqueeze(-1) * m.unsqueeze(-2) + eye * (1.0 - m).unsqueeze(-1)
+            C = torch.linalg.cholesky(Rm)
+            z = torch.linalg.solve_triangular(C, (r * m).unsqueeze(-1), upper=False).squeeze(-1)
+            logdet = 2.0 * torch.log(torch.diagonal(C, dim1=-2, dim2=-1)).sum(-1)
+            n_obs = m.sum(-1)
+        return self.density_of_norms((z * z).sum(-1), logdet, n_obs)
+
+    def scores_in_closed_form(self, all_observed: bool) -> bool:
+        return all_observed
+
+    def residual_scores(self, r: Tensor, mask: Tensor, weight: Tensor) -> tuple[Tensor, dict[str, Tensor]]:
+        """With ``z = C^-1 r``, ``v = Rv^-1 r`` and ``lam`` (:meth:`latent_weight`): the gradient in
+        the mean is ``lam v``, in the log-Cholesky entries ``C_ii lam v_i z_i - 1`` (diagonal, log
+        scale) and ``lam v_i z_j`` (``i > j``)."""
+        p = r.shape[-1]
+        C, Ci = cholesky_and_inverse(self.Rv)
+        z = r @ Ci.mT
+        v = z @ Ci
+        delta2 = (z * z).sum(-1)
+        lam, scores = self.latent_weight(delta2, p, weight)
+        grad_mu = weight * lam.unsqueeze(-1) * v
+        scores["Rv"] = weight * log_cholesky_scores(C, z, v, lam)
+        return grad_mu, scores

@@ -8,22 +8,39 @@ moments weight the M-step (docs/method.md §1, §5).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
+from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from .base import MaskedScale, masked_scale, same_at_every_step, standard_gamma, step_views
+from ... import _validation as V
+from ..scales import LOG, LOG_CHOLESKY
+from .base import (
+    DOWNWEIGHTED_SHARE,
+    MaskedScale,
+    NoiseSpec,
+    downweighted_share,
+    masked_scale,
+    random_source,
+    same_at_every_step,
+    step_views,
+)
 from .joint import JointScaleNoise, SquaredNormEvaluator
 
 __all__ = [
+    "StudentT",
     "StudentTNoise",
     "student_t_log_prob",
     "latent_scale_expectations",
     "dof_equation",
     "solve_dof",
     "sample_student_t",
+    "dof_score",
+    "absorbing_message",
 ]
 
 
@@ -109,28 +126,130 @@ def solve_dof(c: Tensor, dof_min: float = 0.1, dof_max: float = 1000.0, n_bisect
     return torch.exp(0.5 * (lo + hi))
 
 
-def sample_student_t(
-    shape: tuple[int, ...], chol: Tensor, dof: Tensor | float, generator: torch.Generator | None = None
-) -> Tensor:
+def dof_relative_standard_error(dof: Tensor, p: int, n_obs: int) -> Tensor:
+    """``se(dof) / dof`` from the Fisher information of the degrees of freedom of ``n_obs``
+    ``p``-variate t samples with a known scale (Lange, Little & Taylor 1989):
+    ``I = psi'(v/2)/4 - psi'((v+p)/2)/4 - p (v+p+4) / (2 v (v+p) (v+p+2))``."""
+    v = dof.clamp_min(1e-6)
+    info = (
+        0.25 * (torch.special.polygamma(1, v / 2) - torch.special.polygamma(1, (v + p) / 2))
+        - p * (v + p + 4) / (2 * v * (v + p) * (v + p + 2))
+    )
+    return 1.0 / (v * torch.sqrt(info.clamp_min(1e-300) * max(n_obs, 1)))
+
+
+def sample_student_t(shape: tuple[int, ...], chol: Tensor, dof: Tensor | float, generator=None) -> Tensor:
     """Draws ``shape + (p,)`` of ``St(0, chol chol^T, dof)`` (Gaussian for infinite ``dof``)."""
-    p = chol.shape[-1]
-    z = torch.randn(*shape, p, dtype=chol.dtype, device=chol.device, generator=generator)
-    z = z @ chol.transpose(-1, -2)
+    draws = random_source(generator, chol)
+    z = draws.standard_normal((*shape, chol.shape[-1])) @ chol.transpose(-1, -2)
+    return _scale_mixture(z, dof, draws)
+
+
+def _scale_mixture(z: Tensor, dof: Tensor | float, draws) -> Tensor:
+    """Gaussian draws ``z`` ``(..., p)`` over the square roots of ``Gamma(dof/2, rate=dof/2)`` draws,
+    one per row: Student-t draws (``z`` itself for infinite ``dof``)."""
     dof = float(dof)
     if math.isinf(dof):
         return z
-    conc = torch.full(shape, 0.5 * dof, dtype=chol.dtype, device=chol.device)
-    lam = standard_gamma(conc, generator) / (0.5 * dof)
-    return z / torch.sqrt(lam).unsqueeze(-1)
+    conc = torch.full(z.shape[:-1], 0.5 * dof, dtype=z.dtype, device=z.device)
+    return draws.scale_mixture(z, conc, 0.5 * dof)
 
 
-def check_dof_init(dof: float) -> None:
-    """The initial degrees of freedom of a Student-t family must be positive and finite."""
-    if not 0 < dof < math.inf:
+def dof_score(nu: Tensor, delta2: Tensor, p: float) -> Tensor:
+    """``d/d log nu`` of the Student-t log-density with ``p`` components at squared distance
+    ``delta2``."""
+    return (
+        0.5 * nu * (torch.digamma(0.5 * (nu + p)) - torch.digamma(0.5 * nu) - torch.log1p(delta2 / nu))
+        - 0.5 * p + 0.5 * (nu + p) * delta2 / (nu + delta2)
+    )
+
+
+def check_dof(dof, name: str = "dof_init") -> None:
+    """Degrees of freedom (a number or an array of them) must be positive and finite; ``name``: the
+    argument that gave them."""
+    values = np.asarray(dof, dtype=float)
+    if not np.all((values > 0) & (values < math.inf)):
         raise ValueError(
-            f"dof_init must be positive and finite for Student-t noise, got {dof!r} "
+            f"{name} must be positive and finite for Student-t noise, got {dof!r} "
             "(use noise='gaussian' for the Gaussian limit)"
         )
+
+
+def check_bounds(bounds, name: str = "dof_bounds") -> tuple[float, float]:
+    """A bracket ``(low, high)`` with ``0 < low < high``, as floats."""
+    try:
+        lo, hi = (float(b) for b in bounds)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a pair (low, high), got {bounds!r}") from exc
+    if not 0 < lo < hi:
+        raise ValueError(f"{name} must satisfy 0 < low < high, got {bounds!r}")
+    return lo, hi
+
+
+#: A fitted dof below this (tails heavier than Cauchy's) is reported after the fit, as are more
+#: than DOWNWEIGHTED_SHARE of the samples with an outlier weight below 0.5: the noise model may be
+#: absorbing model error (genuinely Cauchy noise down-weights about a third of the samples).
+DOF_FLOOR = 1.0
+
+
+def absorbing_message(dof, weights) -> str | None:
+    """Words for a Student-t fit whose noise model explains too much (``None`` if it does not):
+    ``dof`` (one or one per output) below :data:`DOF_FLOOR` or too many down-weighted samples."""
+    share = downweighted_share(weights)
+    low = np.min(np.atleast_1d(dof)) < DOF_FLOOR
+    if not low and share <= DOWNWEIGHTED_SHARE:
+        return None
+    return (
+        f"the measurement noise absorbs much of the data: dof {np.round(np.atleast_1d(dof), 2).tolist()}, "
+        f"{100 * share:.0f} % of the samples have an outlier weight below 0.5. Unless the sensor "
+        "noise really is that heavy-tailed, the noise model is absorbing what f and g cannot explain "
+        "(model error, not outliers): check the residuals (torch_nssm.diagnostics), raise the lower "
+        "dof bound (dof_bounds=(2.0, 1000.0)) or hold it (fit_dof=False), or improve the model"
+    )
+
+
+@dataclass(frozen=True)
+class StudentT(NoiseSpec):
+    """Multivariate Student-t measurement noise ``v ~ St(0, Rv, dof)`` (``noise="student-t"``): one
+    latent scale per sample, shared by all outputs.
+
+    Parameters
+    ----------
+    dof : float, default=5.0
+        Initial degrees of freedom (positive and finite).
+    fit_dof : bool, default=True
+        Estimate the degrees of freedom; if False they stay at ``dof``.
+    dof_bounds : (float, float), default=(0.1, 1000.0)
+        Bracket of the degrees-of-freedom root-solve (and of their extrapolation).
+    """
+
+    dof: float = 5.0
+    fit_dof: bool = True
+    dof_bounds: tuple[float, float] = (0.1, 1000.0)
+
+    name = "student-t"
+
+    def __post_init__(self):
+        V.check_positive(self.dof, "dof")
+        check_dof(self.dof, "dof")
+        object.__setattr__(self, "dof", float(self.dof))
+        object.__setattr__(self, "fit_dof", bool(self.fit_dof))
+        object.__setattr__(self, "dof_bounds", check_bounds(self.dof_bounds))
+
+    @classmethod
+    def from_shortcuts(cls, dof_init=5.0, fit_dof=True, dof_bounds=(0.1, 1000.0), **ignored: Any) -> StudentT:
+        V.check_positive(dof_init, "dof_init")
+        check_dof(dof_init, "dof_init")
+        return cls(dof=float(dof_init), fit_dof=bool(fit_dof), dof_bounds=check_bounds(dof_bounds))
+
+    def initial(self, Rv: Tensor) -> StudentTNoise:
+        return StudentTNoise.initial(Rv, self.dof, spec=self)
+
+    def starting_at(self, noise: StudentTNoise) -> StudentT:
+        return dataclasses.replace(self, dof=float(noise.dof))
+
+    def initial_shortcuts(self) -> dict[str, Any]:
+        return {"dof_init": self.dof}
 
 
 class _StudentTEvaluator(SquaredNormEvaluator):
@@ -162,12 +281,23 @@ class StudentTNoise(JointScaleNoise):
     dof: Tensor
 
     name = "student-t"
+    SPEC = StudentT
     CORE_DIMS = {"Rv": 2, "dof": 0}
+    WORKING = {"Rv": LOG_CHOLESKY, "dof": LOG}
 
     @classmethod
-    def initial(cls, Rv: Tensor, dof: float) -> StudentTNoise:
-        check_dof_init(dof)
-        return cls(Rv=Rv, dof=torch.tensor(float(dof), dtype=Rv.dtype, device=Rv.device))
+    def initial(cls, Rv: Tensor, dof: float, spec: StudentT | None = None) -> StudentTNoise:
+        """The noise of scale ``Rv`` with ``dof`` degrees of freedom (positive and finite)."""
+        check_dof(dof)
+        return cls(Rv=Rv, dof=torch.tensor(float(dof), dtype=Rv.dtype, device=Rv.device), spec=spec)
+
+    def admissible(self, name: str, value: Tensor) -> Tensor:
+        """Finite, and ``dof = inf`` (the Gaussian limit)."""
+        finite = torch.isfinite(value)
+        return finite | (torch.isinf(value) & (value > 0)) if name == "dof" else finite
+
+    def absorption_message(self, weights) -> str | None:
+        return absorbing_message(self.attributes()["dof"], weights)
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _StudentTEvaluator:
         dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B)
@@ -191,12 +321,81 @@ class StudentTNoise(JointScaleNoise):
         stats["dof_c"] = (W * (e_log_lam - e_lam)).sum((0, 2))
         return stats
 
-    def updated(self, stats, *, fit_Rv, fit_dof, dof_bounds) -> StudentTNoise:
+    def updated(self, stats, *, fit_Rv=True, fit_shape=True) -> StudentTNoise:
         dof = self.dof
-        if fit_dof:
+        if fit_shape and self.spec.fit_dof:
             c = stats["dof_c"] / stats["n_obs"].clamp_min(1)
-            dof = solve_dof(c, *dof_bounds).to(self.dof).reshape(self.dof.shape)
+            dof = solve_dof(c, *self.spec.dof_bounds).to(self.dof).reshape(self.dof.shape)
         return self.replace(Rv=self._updated_scale(stats, fit_Rv), dof=dof)
 
     def sample(self, shape, generator=None) -> Tensor:
-        return sample_student_t(shape, torch.linalg.cholesky(self.Rv), self.dof, generator)
+        draws = random_source(generator, self.Rv)
+        return _scale_mixture(draws.gaussian(shape, self.Rv), self.dof, draws)
+
+    # ------------------------------------------------------------------ the observed information
+    def estimated(self, fit_Rv=True, fit_shape=True) -> list[str]:
+        """``Rv`` if ``fit_Rv``; ``dof`` if ``fit_shape``, the specification's ``fit_dof`` and finite."""
+        names = ["Rv"] if fit_Rv else []
+        if fit_shape and self.spec.fit_dof and bool(torch.isfinite(self.dof).all()):
+            names.append("dof")
+        return names
+
+    def bounds(self, name: str) -> tuple[float, float] | None:
+        return self.spec.dof_bounds if name == "dof" else None
+
+    @property
+    def is_gaussian(self) -> bool:
+        """Infinite degrees of freedom."""
+        return not bool(torch.isfinite(self.dof).all())
+
+    def density_of_norms(self, delta2, logdet, n_obs) -> Tensor:
+        if self.is_gaussian:
+            return -0.5 * (n_obs * math.log(2 * math.pi) + logdet + delta2)
+        dof = self.dof
+        half = 0.5 * (dof + n_obs)
+        return (
+            torch.lgamma(half) - torch.lgamma(0.5 * dof) - 0.5 * n_obs * torch.log(dof * math.pi)
+            - 0.5 * logdet - half * torch.log1p(delta2 / dof)
+        )
+
+    def latent_weight(self, delta2, p, weight):
+        """``lam = (nu + p) / (nu + delta2)``; the score in ``log nu`` is :func:`dof_score`."""
+        if self.is_gaussian:
+            return torch.ones_like(delta2), {}
+        nu = self.dof
+        lam = (nu + p) / (nu + delta2)
+        return lam, {"dof": weight * dof_score(nu, delta2, float(p)).unsqueeze(-1)}
+
+    @property
+    def elliptical(self) -> bool:
+        return not self.is_gaussian
+
+    def elliptical_terms(self, q, p, names=()):
+        """``h(q) = c(nu) - (nu + p) / 2 log(1 + q / nu)``: ``lam = (nu + p) / (nu + q)``,
+        ``h_qq = (nu + p) / (2 (nu + q)^2)``, and in ``log nu`` the cross term
+        ``-nu (q - p) / (2 (nu + q)^2)`` and the second derivative ``nu l_nu + nu^2 l_nunu``."""
+        if self.is_gaussian:
+            return None
+        nu = self.dof
+        lam = (nu + p) / (nu + q)
+        h_qq = (nu + p) / (2.0 * (nu + q) ** 2)
+        shape = {}
+        if "dof" in names:
+            cross = -nu * (q - p) / (2.0 * (nu + q) ** 2)
+            l_nu = (
+                0.5 * torch.digamma(0.5 * (nu + p)) - 0.5 * torch.digamma(0.5 * nu) - 0.5 * p / nu
+                - 0.5 * torch.log1p(q / nu) + 0.5 * (nu + p) * q / (nu * (nu + q))
+            )
+            l_nunu = (
+                0.25 * torch.polygamma(1, 0.5 * (nu + p)) - 0.25 * torch.polygamma(1, 0.5 * nu)
+                + 0.5 * p / nu**2
+                + 0.5 * q / (nu * (nu + q))
+                + 0.5 * q * (nu * (nu + q) - (nu + p) * (2.0 * nu + q)) / (nu**2 * (nu + q) ** 2)
+            )
+            shape["dof"] = (cross, nu * l_nu + nu**2 * l_nunu)
+        return lam, h_qq, shape
+
+    def convergence_scales(self, n_obs: int) -> dict[str, Tensor]:
+        scales = super().convergence_scales(n_obs)
+        scales["dof"] = dof_relative_standard_error(self.dof, self.Rv.shape[-1], n_obs)
+        return scales

@@ -1,0 +1,154 @@
+"""How a fit starts and what it keeps: a simulation model holds its process noise, a prediction
+model estimates it, a process noise not given is sized from the data, EM cannot spoil a
+simulation model's simulation, and an iteration whose likelihood collapses is undone."""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from torch_nssm import RobustNSSMEstimator
+from torch_nssm.datasets import (
+    PENDULUM_START,
+    PENDULUM_TRUE,
+    make_paper_example,
+    make_pendulum,
+    pendulum_model,
+)
+from torch_nssm.estimation import loop as loop_module
+from torch_nssm.estimation.loop import EMOptions, run_em
+from torch_nssm.estimation.start import PROCESS_NOISE_SHARE, Start, check_simulation, scaled_process_noise
+from torch_nssm.models import PaperObservation, PaperTransition
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    return make_pendulum(n_samples=400, outlier_fraction=0.03, random_state=0, n_validation=400)
+
+
+def _fit(d, **kw):
+    f, g = pendulum_model(PENDULUM_START)
+    options = dict(x0_mean=list(d.x0_guess), n_particles=60, n_iter=8, random_state=0)
+    options.update(kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return RobustNSSMEstimator(f, g, **options).fit(d.u, d.y)
+
+
+def _moved(history, name):
+    values = np.asarray(history[name], dtype=float)
+    return not np.all(values == values[0])
+
+
+def test_a_simulation_model_keeps_its_f_and_g_and_estimates_the_noise(pendulum):
+    est = _fit(pendulum)
+    assert est.first_stage_.accepted and est.first_stage_.explained >= 0.9
+    assert est.simulation_model_ and est.fit_Rw_
+    assert not any(_moved(est.history_, f"f.{name}") for name in PENDULUM_TRUE)  # the first stage's f
+    assert _moved(est.history_, "Rw") and _moved(est.history_, "Rv")
+    # the measurement noise starts at the first stage's output errors, not at 2 % of y's variance
+    assert est.history_["Rv"][0][0, 0] < 0.01 * np.var(pendulum.y)
+    for name, true in PENDULUM_TRUE.items():
+        assert abs(float(getattr(est.f_, name).detach()) / true - 1) < 0.1
+    # the free run is the first stage's
+    assert est.first_stage_.free_run_scale_after_em == est.first_stage_.free_run_scale_before_em
+
+
+def test_a_prediction_model_moves_f_and_g(pendulum):
+    est = _fit(pendulum, focus="prediction")
+    assert not est.simulation_model_ and est.fit_Rw_
+    assert any(_moved(est.history_, f"f.{name}") for name in PENDULUM_TRUE)
+
+
+def test_a_process_noise_not_given_is_sized_from_the_states_steps():
+    d = make_paper_example(n_samples=200, random_state=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = RobustNSSMEstimator(
+            PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_iter=0, first_stage=None
+        ).fit(d.u, d.y)
+    model = est._fitted_model(torch.device("cpu"))
+    model = replace(model, Rw=torch.eye(1, dtype=torch.float64))
+    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    from torch_nssm.inference.prediction import free_run
+
+    x = free_run(model, data.u)[0][:, 0, 0]
+    expected = PROCESS_NOISE_SHARE * torch.var(x[1:] - x[:-1])
+    torch.testing.assert_close(scaled_process_noise(model, data)[0, 0], expected)
+    fitted = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_iter=1, first_stage=None,
+        n_particles=30, random_state=0,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fitted.fit(d.u, d.y)
+    assert fitted.history_["Rw"][0][0, 0] == pytest.approx(float(expected), rel=1e-9)
+    given = RobustNSSMEstimator(
+        PaperTransition(0.5, 0.5), PaperObservation(0.5), x0_mean=[0.0], n_iter=1, first_stage=None,
+        n_particles=30, random_state=0, Rw_init=0.1,
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        given.fit(d.u, d.y)
+    assert given.history_["Rw"][0][0, 0] == 0.1
+
+
+def test_the_simulation_check_says_when_em_moved_a_simulation_model_to_simulate_worse():
+    d = make_paper_example(n_samples=150, random_state=0, Rw=1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = RobustNSSMEstimator(PaperTransition(0.9, 1.0), PaperObservation(1.0), x0_mean=[0.0], n_iter=0)
+        est.fit(d.u, d.y)
+    staged = est._fitted_model(torch.device("cpu"))
+    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    from torch_nssm.estimation.first_stage import FirstStageReport
+    from torch_nssm.inference.prediction import free_run
+
+    start = Start(staged, seeds=[0], limit=math.inf, init_jitter=1.0)
+    start.first_stage = FirstStageReport(1.0, 1.0, 1.0, 1.0, True, 1, explained=0.95)
+    start.staged, start.staged_run = staged, free_run(staged, data.u)
+    worse = replace(staged, f=PaperTransition(0.5, 1.0).double())
+
+    class Run:
+        interrupted = False
+
+    check = check_simulation(start, Run(), free_run(worse, data.u)[1], data)
+    assert check.outcome == "worse" and check.after > check.before
+    start.hold_modules = True  # a simulation model's EM does not move f and g: nothing to say
+    assert check_simulation(start, Run(), free_run(worse, data.u)[1], data).outcome == "kept"
+    Run.interrupted = True
+    assert check_simulation(start, Run(), free_run(worse, data.u)[1], data).outcome == "interrupted"
+
+
+def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypatch):
+    d = make_paper_example(n_samples=200, random_state=0)
+    est = RobustNSSMEstimator(
+        PaperTransition(0.9, 1.0), PaperObservation(1.0), x0_mean=[0.0], n_iter=0, first_stage=None
+    ).fit(d.u, d.y)
+    model = est._fitted_model(torch.device("cpu"))
+    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    real = loop_module.m_step
+    calls = {"n": 0}
+
+    def sabotaged(models, *args, **kwargs):
+        result = real(models, *args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 3:  # the third M-step ruins g: the likelihood collapses
+            with torch.no_grad():
+                result.models[0].g.c.fill_(1e-3)
+        return result
+
+    monkeypatch.setattr(loop_module, "m_step", sabotaged)
+    options = EMOptions(n_iter=10, tol=0.0)
+    options.estep.n_particles = 50
+    result = run_em([model], data, options, torch.Generator().manual_seed(0))[0]
+    assert result.halted and "fell from" in result.halted
+    assert result.n_done == 2 and not result.converged
+    assert float(result.model.g.c) > 0.5  # the iterate before the ruinous M-step
+    assert len(result.history["log_likelihood"]) == 3
+    assert result.log_likelihood == pytest.approx(result.history["log_likelihood"][-1], abs=50)
