@@ -60,7 +60,7 @@ TANKS_TRUE: dict[str, float] = {
 }
 #: The physically sized start: ``k1`` x 1.4, ``k2`` x 0.6, ``k3`` x 1.3, ``k4`` x 0.7, ``k5`` x 0.5,
 #: ``h1_max`` x 0.7, ``y_offset`` x 1.5.  More outflow and less pump lower the start's upper levels
-#: about 4 times (at most 5.1 cm under 9 V): the start never overflows its 7 cm, so its gradient
+#: about 4 times (at most 5.6 cm under 9.5 V): the start never overflows its 7 cm, so its gradient
 #: does not see ``h1_max`` or ``k5``, and its lower level is about 3 times too low.
 TANKS_START: dict[str, float] = {
     "k1": 0.0084, "k2": 0.0033, "k3": 0.0078, "k4": 0.0021, "k5": 0.25, "h1_max": 7.0, "y_offset": 0.6,
@@ -69,10 +69,15 @@ TANKS_START: dict[str, float] = {
 TANKS_RW: tuple[float, float] = (2.5e-5, 2.5e-5)
 #: Measurement-noise variance of the lower level, cm^2 (s.d. 0.02 cm).
 TANKS_RV: float = 4e-4
-#: Pump voltage: levels drawn uniformly in this range (V), each held for a number of samples drawn
-#: uniformly in ``TANKS_HOLD``; the upper tank overflows while the voltage is above about 6.3 V.
-TANKS_INPUT_RANGE: tuple[float, float] = (2.0, 9.0)
-TANKS_HOLD: tuple[int, int] = (50, 200)
+#: Pump voltage: levels drawn alternately from a low band (the upper tank settles below its top)
+#: and a high band (it fills to ``h1_max`` and overflows: above about 6.3 V at rest), each held for
+#: a number of samples drawn uniformly in ``TANKS_HOLD``.  The alternation makes every record,
+#: training included, see the overflow: a model fitted on a record that never overflows can only
+#: guess ``h1_max`` and ``k5``, and its validation would score extrapolation luck.
+TANKS_INPUT_RANGE: tuple[float, float] = (2.0, 9.5)
+TANKS_LOW_BAND: tuple[float, float] = (2.0, 6.0)
+TANKS_HIGH_BAND: tuple[float, float] = (7.5, 9.5)
+TANKS_HOLD: tuple[int, int] = (100, 250)
 #: Pump voltage before each record starts: the tanks start at its equilibrium (training, validation).
 TANKS_PRE_INPUT: tuple[float, float] = (4.0, 6.0)
 #: Lower bound of the level under the square roots (the gradient of ``sqrt`` at 0 is infinite).
@@ -184,11 +189,11 @@ def tanks_equilibrium(u: float, params: dict[str, float] | None = None) -> np.nd
 
 def _pump_voltage(rng: np.random.Generator, n: int) -> np.ndarray:
     u = np.empty(n)
-    k = 0
+    k, high = 0, bool(rng.integers(2))
     while k < n:
         hold = int(rng.integers(TANKS_HOLD[0], TANKS_HOLD[1] + 1))
-        u[k : k + hold] = rng.uniform(*TANKS_INPUT_RANGE)
-        k += hold
+        u[k : k + hold] = rng.uniform(*(TANKS_HIGH_BAND if high else TANKS_LOW_BAND))
+        k, high = k + hold, not high
     return u
 
 
@@ -218,9 +223,9 @@ def make_tanks(
     Each record starts at the equilibrium of a pump voltage applied before it
     (:data:`TANKS_PRE_INPUT`: 4 V for training, 6 V for validation); a user does not know the upper
     level, so ``x0_guess`` is the median of the first 10 measured outputs for both levels.  The
-    pump voltage steps between levels in :data:`TANKS_INPUT_RANGE` held for 50-200 samples; above
-    about 6.3 V the upper tank fills to ``h1_max`` and overflows.  Gross outliers:
-    ``round(outlier_fraction * N)`` samples get +-(2-6) standard deviations of the clean level.
+    pump voltage steps alternately to a low and a high level held for 100-250 samples; at the high
+    levels the upper tank fills to ``h1_max`` and overflows, in training as in validation.  Gross
+    outliers: ``round(outlier_fraction * N)`` samples get +-(2-6) standard deviations of the clean level.
 
     Parameters
     ----------
