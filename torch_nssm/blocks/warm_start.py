@@ -350,8 +350,7 @@ def warm_start_estimator(
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
         ``Rv_init`` and the noise family's other initial values (when the reference fitted the
-        estimator's family) set from the reference, and ``first_stage=None`` when ``f`` or ``g``
-        holds a network (this is its start); unfitted.
+        estimator's family) from the reference, ``first_stage=None`` for a network; unfitted.
     WarmStartInfo
         Only with ``return_info=True``.
 
