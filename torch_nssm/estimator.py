@@ -144,11 +144,14 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         time) and grow until one covers each record, each stage judged by the free run of the whole
         records (:mod:`torch_nssm.estimation.first_stage`); EM starts at the best stage.
         ``first_stage_`` reports every stage.  Restarts (``n_init``) jitter around its result.
-        ``"auto"``: the same for physical and grey-box models (free parameters, no network layer
-        in ``f`` or ``g``) when ``n_iter > 0``, and EM starts there only if that free run explains
-        at least half of ``y`` (robust R²; below it the process noise dominates); models with
-        networks start with :func:`~torch_nssm.warm_start_estimator` instead.  ``None``: EM starts
-        from the given values.  docs/design.md, "How a fit starts".
+        When ``f`` or ``g`` holds a network layer, the neural first stage instead: the networks
+        trained by robust simulation error over windows of doubling length, with an early stop on
+        the held-out end of each record (:mod:`torch_nssm.estimation.neural_first_stage`; its
+        options and report: :func:`~torch_nssm.simulation_warm_start`).
+        ``"auto"``: the same when ``n_iter > 0`` and ``f`` or ``g`` has free parameters, and EM
+        starts there only if that free run explains at least half of ``y`` (robust R²; below it the
+        process noise dominates).  ``None``: EM starts from the given values.  docs/design.md,
+        "How a fit starts".
     focus : {"simulation", "prediction"}, default="simulation"
         What the model is for (MATLAB's ``Focus``).  ``"simulation"``: when the first stage's
         noise-free simulation explains at least 90 % of ``y`` (robust R²: a simulation model), EM
@@ -245,7 +248,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         missing; per output for ``"student-t-per-output"``.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
-    first_stage_ : FirstStageReport or None
+    first_stage_ : FirstStageReport, NeuralFirstStageReport or None
         What the first stage did (simulation errors before and after, whether it was kept, the
         free-run error scales after the first stage and after EM); ``None`` if it did not run.
     fit_Rw_ : bool

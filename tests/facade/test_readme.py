@@ -1,7 +1,8 @@
 """The README's Python examples run as written (with a few EM iterations), in order, in one namespace.
 
-Only the sizes are shrunk (``n_iter``, ``n_particles``, ``max_iter_mstep`` and the warm start's
-reference fit), so the README and the code cannot drift apart unnoticed.
+Only the sizes are shrunk (``n_iter``, ``n_particles``, ``max_iter_mstep``, the pendulum's
+``n_samples``, the warm start's reference fit and the simulation-error training), so the README and
+the code cannot drift apart unnoticed.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ README = Path(__file__).resolve().parents[2] / "README.md"
 
 #: (pattern, replacement): small settings for the test, everything else as written
 SHRINK = [
+    (r"\bn_samples=2000", "n_samples=300"),
     (r"\bn_iter=\d+", "n_iter=2"),
     (r"\bn_particles=\d+", "n_particles=20"),
     (r"\bmax_iter_mstep=\d+", "max_iter_mstep=5"),
@@ -56,6 +58,12 @@ def test_readme_python_blocks_run(monkeypatch):
     # the warm start's reference fit and distillation, shrunk like the fits above
     small = functools.partial(ws.warm_start_estimator, n_iter=2, distill_iter=10)
     monkeypatch.setattr(torch_nssm, "warm_start_estimator", small, raising=False)
+    # and the networks' simulation-error training (a few LBFGS iterations over short windows)
+    from torch_nssm.estimation.neural_first_stage import NeuralFirstStageOptions
+
+    short = NeuralFirstStageOptions(horizon=20, max_horizon=20, max_iter=5)
+    small_sim = functools.partial(ws.simulation_warm_start, options=short)
+    monkeypatch.setattr(torch_nssm, "simulation_warm_start", small_sim, raising=False)
     namespace: dict = {"__name__": "readme"}
     n_threads = torch.get_num_threads()
     try:

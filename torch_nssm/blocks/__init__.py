@@ -6,8 +6,8 @@
 * :mod:`~torch_nssm.blocks.continuous` -- :class:`ContinuousTimeTransition` (a transition from an
   ODE ``dx/dt = F(x, u)`` and a sample time), :class:`LinearContinuousTimeTransition`;
   :class:`MLPDerivative` (in :mod:`~torch_nssm.blocks.neural`) is a neural ``F``.
-* :mod:`~torch_nssm.blocks.warm_start` -- :func:`warm_start_estimator`, :func:`distill`,
-  :class:`WarmStartInfo`.
+* :mod:`~torch_nssm.blocks.warm_start` -- :func:`simulation_warm_start` (networks trained by
+  simulation error first), :func:`warm_start_estimator`, :func:`distill`, :class:`WarmStartInfo`.
 
 The public paths :mod:`torch_nssm.neural` and :mod:`torch_nssm.warm_start` re-export them.
 """
@@ -15,7 +15,7 @@ The public paths :mod:`torch_nssm.neural` and :mod:`torch_nssm.warm_start` re-ex
 from .continuous import ContinuousTimeTransition, LinearContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import ACTIVATIONS, GreyBoxTransition, MLPDerivative, MLPObservation, MLPTransition
-from .warm_start import WarmStartInfo, distill, warm_start_estimator
+from .warm_start import WarmStartInfo, distill, simulation_warm_start, warm_start_estimator
 
 __all__ = [
     "MLPTransition",
@@ -28,6 +28,7 @@ __all__ = [
     "LinearTransition",
     "LinearObservation",
     "warm_start_estimator",
+    "simulation_warm_start",
     "distill",
     "WarmStartInfo",
 ]

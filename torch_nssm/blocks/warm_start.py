@@ -1,6 +1,11 @@
-"""Warm starts for neural and grey-box models: fit a fast model first, start the network from it.
+"""Warm starts for neural and grey-box models: train or fit something fast first, start EM there.
 
-:func:`warm_start_estimator` fits a reference model by EM (by default a
+:func:`simulation_warm_start` (the start for networks) trains ``f`` and ``g`` by robust simulation
+error over windows (:func:`torch_nssm.estimation.neural_first_stage.neural_first_stage`) and returns
+an unfitted clone of the user's estimator that starts there: the trained modules, the fitted first
+state and noise levels that match the simulation.
+
+:func:`warm_start_estimator` (the earlier start) fits a reference model by EM (by default a
 :class:`~torch_nssm.blocks.linear.LinearTransition`: closed-form M-steps), smooths the states with
 it, sets the networks' normalisation from those states and trains the networks to imitate the
 reference (:func:`distill`).  The result is an unfitted clone of the user's estimator that starts
@@ -22,8 +27,10 @@ from __future__ import annotations
 import copy
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from types import SimpleNamespace
 from typing import Any, Union
 
 import numpy as np
@@ -34,12 +41,28 @@ from torch import Tensor, nn
 from .. import _validation as V
 from .._stats import robust_scale
 from ..core.noise import noise_spec, restart_parameters
+from ..estimation.neural_first_stage import (
+    NeuralFirstStageOptions,
+    NeuralFirstStageReport,
+    default_options,
+    holds_network,
+    neural_first_stage,
+    start_noise_levels,
+)
+from ..estimation.start import stage_seed
 from ..estimator import RobustNSSMEstimator
 from .continuous import ContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import GreyBoxTransition, MLPObservation, MLPTransition
 
-__all__ = ["distill", "warm_start_estimator", "WarmStartInfo", "LinearTransition", "LinearObservation"]
+__all__ = [
+    "distill",
+    "simulation_warm_start",
+    "warm_start_estimator",
+    "WarmStartInfo",
+    "LinearTransition",
+    "LinearObservation",
+]
 
 ArrayLike = Union[Tensor, np.ndarray, Sequence, float, None]
 
@@ -327,7 +350,7 @@ def warm_start_estimator(
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
         ``Rv_init`` and the noise family's other initial values (when the reference fitted the
-        estimator's family) set from the reference; unfitted.
+        estimator's family) from the reference, ``first_stage=None`` for a network; unfitted.
     WarmStartInfo
         Only with ``return_info=True``.
 
@@ -421,6 +444,8 @@ def _warm(estimator, reference, f_new, g_new):
     fitted = reference._fitted_noise()
     if fitted.name == estimator._noise_spec().name:  # the reference fitted the estimator's family
         params.update(restart_parameters(estimator.noise, fitted))
+    if holds_network(SimpleNamespace(f=f_new, g=g_new)):
+        params["first_stage"] = None  # this is the network's start: no neural first stage after it
     return clone(estimator).set_params(**params)
 
 
@@ -519,3 +544,98 @@ def _observation(g, action: str, reference, X, U, ys, distill_iter: int) -> tupl
             g_new.fit_normalisation(X, U if g_new.nu > 0 else None, y=np.concatenate(ys, axis=0))
         g_error = distill(g_new, reference.g_, X, U, max_iter=distill_iter)
     return g_new, g_error
+
+
+# ---------------------------------------------------------------------- the simulation-error start
+def simulation_warm_start(
+    estimator: RobustNSSMEstimator,
+    u: Any,
+    y: Any,
+    *,
+    options: NeuralFirstStageOptions | None = None,
+    return_report: bool = False,
+) -> RobustNSSMEstimator | tuple[RobustNSSMEstimator, NeuralFirstStageReport]:
+    """A clone of ``estimator`` whose ``f`` and ``g`` were trained by robust simulation error.
+
+    Runs the neural first stage (:func:`~torch_nssm.estimation.neural_first_stage.neural_first_stage`:
+    windows of the record simulated noise-free, a Cauchy loss, LBFGS, an early stop on the held-out
+    end of each record) on the estimator's modules and returns an unfitted clone that starts EM
+    there.  Call ``.fit(u, y)`` on the result.
+
+    Parameters
+    ----------
+    estimator : RobustNSSMEstimator
+        The (unfitted) estimator of the model you want, e.g. with an
+        :class:`~torch_nssm.neural.MLPTransition` as ``f``.  It is not changed; its ``x0_mean`` is
+        the first windows' starting state.
+    u : array-like of shape (N,) or (N, nu), list of them, or None
+        Inputs, as for :meth:`~torch_nssm.RobustNSSMEstimator.fit`.
+    y : array-like of shape (N,) or (N, p), or list of them
+        Outputs (NaN: missing).
+    options : NeuralFirstStageOptions, optional
+        Settings of the training (window length, iterations, loss...).  By default those of
+        ``first_stage="auto"``: the robust (Cauchy) loss, or least squares for Gaussian noise
+        (:func:`~torch_nssm.estimation.neural_first_stage.default_options`).
+    return_report : bool, default=False
+        Also return the :class:`~torch_nssm.estimation.neural_first_stage.NeuralFirstStageReport`.
+
+    Returns
+    -------
+    RobustNSSMEstimator
+        ``sklearn.base.clone(estimator)`` with the trained ``f`` and ``g``, ``x0_mean`` at the fitted
+        first state (the mean over the records), ``Rv_init`` from the trained simulation's output
+        errors unless the estimator sets it, and ``first_stage=None`` (the start is done).  With
+        ``fit_Rw="auto"`` (the default) the network is a simulation model and EM holds its process
+        noise small: ``fit_Rw=False`` and ``Rw_init`` 1e-6 times the variance of each simulated
+        state (:func:`~torch_nssm.estimation.neural_first_stage.start_noise_levels`) unless given;
+        ``fit_Rw=True`` lets EM estimate it.  If the training did not improve the free run
+        (``report.accepted`` is False) the modules are the given ones and a warning says so.
+    NeuralFirstStageReport
+        Only with ``return_report=True``.
+
+    Raises
+    ------
+    TypeError
+        If ``estimator`` is not a :class:`~torch_nssm.RobustNSSMEstimator`.
+    ValueError
+        For bad settings or data (as :meth:`~torch_nssm.RobustNSSMEstimator.fit`).
+
+    Notes
+    -----
+    Keep ``n_init=1`` for the fit after it: restarts jitter every network weight.
+    """
+    if not isinstance(estimator, RobustNSSMEstimator):
+        raise TypeError(f"estimator must be a RobustNSSMEstimator, got {type(estimator).__name__}")
+    if not isinstance(return_report, (bool, np.bool_)):
+        raise TypeError(f"return_report must be True or False, got {return_report!r}")
+    if options is None:
+        options = default_options(estimator._noise_spec().name)
+    elif not isinstance(options, NeuralFirstStageOptions):
+        raise TypeError(f"options must be a NeuralFirstStageOptions, got {type(options).__name__}")
+    if estimator.x0_mean is None:
+        raise ValueError("estimator.x0_mean is required: it fixes the state dimension nx")
+    device = estimator._check_params()
+    data, _ = estimator._batch(u, y, device, fitted=False)
+    model = estimator._initial_model(data, device)
+    generator = torch.Generator().manual_seed(stage_seed(estimator.random_state))
+    report = neural_first_stage(model, data, options, generator=generator)
+    params: dict[str, Any] = dict(f=model.f, g=model.g, first_stage=None)
+    if report.accepted:
+        Rw, Rv = start_noise_levels(model, data, report.first_states)
+        params["x0_mean"] = report.first_states.mean(0).cpu().numpy()
+        if estimator.Rv_init is None:
+            params["Rv_init"] = Rv.cpu().numpy()
+        if estimator.fit_Rw == "auto":  # a simulation model: EM holds its process noise small
+            params["fit_Rw"] = False
+            if estimator.Rw_init is None:
+                params["Rw_init"] = Rw.cpu().numpy()
+    else:
+        warnings.warn(
+            f"the simulation-error training did not improve the free run of the record (trimmed RMS of "
+            f"its errors {report.free_run_after:.4g}, the start's {report.free_run_before:.4g}): EM starts "
+            "from the given modules",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    warm = clone(estimator).set_params(**params)
+    return (warm, report) if return_report else warm

@@ -31,6 +31,7 @@ from ..core.parametric import LinearInParameters
 from ..inference import prediction
 from ..metrics import robust_r2_score
 from .first_stage import FirstStageReport, first_stage_applies, simulation_error_fit
+from .neural_first_stage import NeuralFirstStageReport, default_options, holds_network, neural_first_stage
 
 __all__ = [
     "Start",
@@ -116,7 +117,7 @@ class Start:
     limit : float
         How far a restart's simulation may go before it counts as diverging.
     init_jitter : float
-    first_stage : FirstStageReport or None
+    first_stage : FirstStageReport, NeuralFirstStageReport or None
         What the first stage did (``None``: it did not run).
     first_stage_unimproved : bool
         ``first_stage="simulation"`` was asked and did not improve the start (EM starts from the
@@ -141,7 +142,7 @@ class Start:
     seeds: list[int]
     limit: float
     init_jitter: float
-    first_stage: FirstStageReport | None = None
+    first_stage: FirstStageReport | NeuralFirstStageReport | None = None
     first_stage_unimproved: bool = False
     divergent_step: int | None = None
     staged: StateSpaceModel | None = None
@@ -181,7 +182,9 @@ def plan_start(
     """
     start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
     if runs_first_stage(model, settings):
-        start.first_stage, kept_run, start.model = first_stage_start(model, data, settings.first_stage)
+        start.first_stage, kept_run, start.model = first_stage_start(
+            model, data, settings.first_stage, settings.random_state
+        )
         start.interrupted = start.first_stage.interrupted
         start.first_stage_unimproved = not start.first_stage.accepted and settings.first_stage != "auto"
         if kept_run is not None:
@@ -279,24 +282,36 @@ def simulation_start(
 
 
 def runs_first_stage(model: StateSpaceModel, settings: StartSettings) -> bool:
-    """Whether the first stage runs from ``model`` (``first_stage`` and, for ``"auto"``, the model)."""
+    """Whether the first stage runs from ``model`` (``first_stage`` and, for ``"auto"``, the model:
+    free parameters in ``f`` or ``g``, physical or a network)."""
     if settings.warm:
         return False
     if settings.first_stage == "auto":  # a start for EM: none needed without EM (n_iter=0 evaluates a model)
-        return settings.n_iter > 0 and first_stage_applies(model)
+        return settings.n_iter > 0 and (first_stage_applies(model) or holds_network(model))
     return settings.first_stage == "simulation"
 
 
 def first_stage_start(
-    model: StateSpaceModel, data: SequenceBatch, mode: str
-) -> tuple[FirstStageReport, tuple | None, StateSpaceModel]:
+    model: StateSpaceModel, data: SequenceBatch, mode: str, random_state: Any = None
+) -> tuple[FirstStageReport | NeuralFirstStageReport, tuple | None, StateSpaceModel]:
     """The robust simulation-error fit from ``model``: its report, the noise-free simulation
-    ``(states, outputs)`` of its result if that is kept (else ``None``), and EM's start."""
+    ``(states, outputs)`` of its result if that is kept (else ``None``), and EM's start.
+
+    A model whose ``f`` or ``g`` holds a network layer gets the neural first stage
+    (:func:`~torch_nssm.estimation.neural_first_stage.neural_first_stage` with the settings of its
+    noise family, seeded by an integer ``random_state``, else 0), any other the physical one
+    (:func:`~torch_nssm.estimation.first_stage.simulation_error_fit`); what follows is the same."""
     given = copy_model(model)
-    report = simulation_error_fit(model, data)
+    if holds_network(model):
+        generator = torch.Generator().manual_seed(stage_seed(random_state))
+        report = neural_first_stage(model, data, default_options(model.noise.name), generator=generator)
+        first_states = report.first_states
+    else:
+        report = simulation_error_fit(model, data)
+        first_states = report.record_states
     if not report.accepted:
         return report, None, given
-    staged = replace(model, x0_mean=report.record_states.mean(0))
+    staged = replace(model, x0_mean=first_states.mean(0))
     run = prediction.free_run(staged, data.u)
     report.explained = explained_share(run[1], data)
     if keep_first_stage(report, mode):
@@ -306,7 +321,13 @@ def first_stage_start(
     return report, None, given
 
 
-def keep_first_stage(report: FirstStageReport, mode: str) -> bool:
+def stage_seed(random_state: Any) -> int:
+    """The neural first stage's seed: ``random_state`` if it is an integer, else 0 (the stage is
+    then repeatable, and the restarts' seeds, :func:`restart_seeds`, draw nothing for it)."""
+    return int(random_state) if isinstance(random_state, (int, np.integer)) else 0
+
+
+def keep_first_stage(report: FirstStageReport | NeuralFirstStageReport, mode: str) -> bool:
     """Whether EM starts from the first stage's result: always for ``"simulation"``; for ``"auto"``
     when its simulation explains at least ``SIMULATION_R2_FLOOR`` of ``y``.  Below it the process
     noise dominates ``y`` and a simulation-error fit is no guide to the parameters (the paper's

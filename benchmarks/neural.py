@@ -1,0 +1,460 @@
+"""Neural transition models: the README's recipe against its baselines.
+
+Three studies, each a subcommand (one torch thread; times are CPU seconds of this process, with the
+wall seconds beside them, because the machines these ran on were shared):
+
+* ``pendulum`` -- the suite's damped pendulum (2,000 samples, 3 % outliers, validation record of
+  2,000 samples).  The physical model fitted with the defaults (``RobustNSSMEstimator(f, g,
+  x0_mean=..., random_state=0)``) against the README's neural recipe, ``MLPTransition(2, 1,
+  hidden=(32,))`` with ``optimizer="adam", max_iter_mstep=50, n_iter=30``, started by
+  ``simulation_warm_start`` (the network trained by robust simulation error, then EM), the same
+  estimator fitted with the defaults (``first_stage="auto"`` runs the same training inside ``fit``),
+  and against its baselines: the same network trained by simulation error alone (the first stage), the linear
+  state-space reference of ``warm_start_estimator`` and the earlier recipe (``warm_start_estimator``
+  then EM).  Scores: validation free-run RMSE against the noise-free angle; the physical model
+  from the record's known first state (and from a fitted one), every model from a first state
+  fitted to the first 200 validation samples (``fit_initial_states``).
+* ``silverbox`` -- a neural state-space model of the Silverbox (network ``f``, linear ``g`` with a
+  direct input term, no physical part) trained on the multisine record (``--n-train``; all 90,372
+  samples by default), clean and with 5 % outliers, by robust simulation error (Cauchy) and by least
+  squares (the Gaussian baseline); arrow free-run RMSE in mV (full and without the extrapolated
+  tail), the free run from a first state fitted to the arrow's first 100 samples (the scored windows
+  start at 150); ``--em`` adds EM after the robust
+  training (Student-t noise, the process noise held small).
+* ``suite`` -- the simulated plants of ``benchmarks/suite``: an ``MLPTransition`` (normalised by the
+  plant's state scales as a user would from the physics) with the plant's own ``g``, trained by
+  ``simulation_warm_start`` and EM, against the physical model's default fit; validation RMSE.
+
+Usage::
+
+    python benchmarks/neural.py pendulum --out pendulum.json
+    python benchmarks/neural.py silverbox --out silverbox.json            # about 10 min per fit
+    python benchmarks/neural.py suite --plants tanks,oscillator --out suite.json
+    python benchmarks/neural.py pendulum --quick                           # a smoke run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import warnings
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+for _path in (HERE, HERE.parent / "examples"):
+    if str(_path) not in sys.path:
+        sys.path.insert(0, str(_path))
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from torch_nssm import RobustNSSMEstimator, simulation_warm_start, warm_start_estimator  # noqa: E402
+from torch_nssm.core.model import SequenceBatch, StateSpaceModel  # noqa: E402
+from torch_nssm.estimation.neural_first_stage import (  # noqa: E402
+    NeuralFirstStageOptions,
+    fit_initial_states,
+)
+from torch_nssm.estimation.process_noise_check import process_noise_check  # noqa: E402
+from torch_nssm.neural import MLPTransition  # noqa: E402
+
+_t = lambda a: torch.as_tensor(np.asarray(a, dtype=np.float64))  # noqa: E731
+
+
+# ------------------------------------------------------------------------------ helpers
+class Clock:
+    """CPU and wall seconds since construction."""
+
+    def __init__(self) -> None:
+        self.cpu, self.wall = time.process_time(), time.perf_counter()
+
+    def read(self) -> dict[str, float]:
+        return {"cpu_s": time.process_time() - self.cpu, "wall_s": time.perf_counter() - self.wall}
+
+
+def simulate(f, g, u: np.ndarray, x0: np.ndarray) -> np.ndarray:
+    """Noise-free outputs ``(N, p)`` from ``x0``."""
+    ut = _t(np.asarray(u).reshape(len(u), -1))
+    with torch.no_grad(), np.errstate(all="ignore"):
+        x = _t(x0).reshape(1, -1)
+        out = []
+        for k in range(ut.shape[0]):
+            out.append(g(x, ut[k : k + 1])[0])
+            x = f(x, ut[k : k + 1])
+    return torch.stack(out).numpy()
+
+
+def fitted_first_state(f, g, u, y, x0_guess, n: int = 200) -> np.ndarray:
+    """The first state that simulates the record's first ``n`` outputs best (robust loss)."""
+    data = SequenceBatch.from_sequences(
+        [_t(np.asarray(u).reshape(len(u), -1))], [_t(np.asarray(y).reshape(len(y), -1))]
+    )
+    model = StateSpaceModel(f, g, None, None, _t(x0_guess), None)
+    return fit_initial_states(model, data, n_samples=n)[0].numpy()
+
+
+def rmse(a, b) -> float:
+    e = np.asarray(a, dtype=float).reshape(-1) - np.asarray(b, dtype=float).reshape(-1)
+    return float(np.sqrt(np.mean(e**2))) if np.all(np.isfinite(e)) else math.inf
+
+
+def fit_quietly(est: RobustNSSMEstimator, u, y) -> list[str]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        est.fit(u, y)
+    return sorted({f"{w.category.__name__}: {w.message}" for w in caught})
+
+
+def em_summary(est: RobustNSSMEstimator, u, y, outlier_mask: np.ndarray | None) -> dict[str, Any]:
+    flags = est.history_["rejected.f"][1:]
+    out = {
+        "n_iter": int(est.n_iter_),
+        "rejected_f": int(np.sum(flags)),
+        "Rw_diag": np.diag(est.Rw_).tolist(),
+        "Rv_diag": np.diag(np.atleast_2d(est.Rv_)).tolist(),
+        "dof": float(np.min(est.dof_)),
+    }
+    if outlier_mask is not None and outlier_mask.any():
+        w = np.asarray(est.outlier_weights_).reshape(len(outlier_mask), -1).min(-1)
+        out["flagged"] = f"{int(np.sum((w < 0.5) & outlier_mask))}/{int(outlier_mask.sum())}"
+        out["false_alarms"] = int(np.sum((w < 0.5) & ~outlier_mask))
+    device = torch.device("cpu")
+    data, _ = est._batch(u, y, device, fitted=True)
+    check = process_noise_check(est._fitted_model(device), data, generator=torch.Generator().manual_seed(0))
+    out["process_noise_ratio"] = check.ratio
+    return out
+
+
+# ------------------------------------------------------------------------------ pendulum
+def pendulum(quick: bool = False, old: bool = True) -> dict[str, Any]:
+    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
+
+    n = 400 if quick else 2000
+    d = make_pendulum(n, outlier_fraction=0.03, random_state=0, n_validation=n)
+    v = d.validation
+    rows: dict[str, Any] = {"n_train": n, "outliers": "3 %"}
+
+    def score(f, g, known_x0=None) -> dict[str, float]:
+        x0 = fitted_first_state(f, g, v.u, v.y, np.zeros(2))
+        out = {"rmse": rmse(simulate(f, g, v.u, x0), v.y_true)}
+        if known_x0 is not None:
+            out["rmse_known_x0"] = rmse(simulate(f, g, v.u, known_x0), v.y_true)
+        return out
+
+    em_options = dict(n_iter=3, n_particles=50) if quick else {}
+    # the physical model with the defaults
+    f, g = pendulum_model(PENDULUM_START)
+    clock = Clock()
+    phys = RobustNSSMEstimator(f, g, x0_mean=d.x0_guess, random_state=0, **em_options)
+    said = fit_quietly(phys, d.u, d.y)
+    rows["physical"] = {
+        **clock.read(),
+        **score(phys.f_, phys.g_, v.x0),
+        **em_summary(phys, d.u, d.y, d.outlier_mask),
+        "warnings": said,
+    }
+    print("physical", rows["physical"], flush=True)
+
+    def recipe() -> RobustNSSMEstimator:
+        _, g = pendulum_model()
+        options = dict(optimizer="adam", max_iter_mstep=50, n_iter=30, random_state=0)
+        options.update(em_options)
+        return RobustNSSMEstimator(
+            MLPTransition(2, 1, hidden=(32,), random_state=0), g, x0_mean=[0.0, 0.0], **options
+        )
+
+    # the README's recipe: simulation-error training, then EM
+    clock = Clock()
+    opts = NeuralFirstStageOptions(max_iter=20) if quick else None
+    warm, report = simulation_warm_start(recipe(), d.u, d.y, options=opts, return_report=True)
+    stage = clock.read()
+    rows["first_stage"] = {
+        **stage,
+        **score(warm.f, warm.g),
+        "iterations": report.iterations,
+        "best_iteration": report.best_iteration,
+        "stop": report.stop_reason,
+        "accepted": report.accepted,
+        "free_run_train": report.free_run_after,
+    }
+    print("first stage", rows["first_stage"], flush=True)
+    said = fit_quietly(warm, d.u, d.y)
+    rows["recipe"] = {
+        **clock.read(),
+        **score(warm.f_, warm.g_),
+        **em_summary(warm, d.u, d.y, d.outlier_mask),
+        "warnings": said,
+    }
+    print("recipe", rows["recipe"], flush=True)
+
+    # the default fit: first_stage="auto" runs the same training inside fit, then the start policy
+    if not quick:
+        clock = Clock()
+        auto = recipe()
+        said = fit_quietly(auto, d.u, d.y)
+        rows["default_fit"] = {
+            **clock.read(),
+            **score(auto.f_, auto.g_),
+            **em_summary(auto, d.u, d.y, d.outlier_mask),
+            "simulation_model": bool(auto.simulation_model_),
+            "same_training": auto.first_stage_.free_run_after == report.free_run_after,
+            "warnings": said,
+        }
+        print("default fit", rows["default_fit"], flush=True)
+
+    # the linear reference and the earlier recipe (warm_start_estimator)
+    clock = Clock()
+    old_est, info = warm_start_estimator(recipe(), d.u, d.y, return_info=True)
+    ref = info.reference
+    rows["linear_reference"] = {
+        **clock.read(),
+        **score(ref.f_, ref.g_),
+        **em_summary(ref, d.u, d.y, d.outlier_mask),
+    }
+    print("linear reference", rows["linear_reference"], flush=True)
+    if old:
+        said = fit_quietly(old_est, d.u, d.y)
+        rows["earlier_recipe"] = {
+            **clock.read(),
+            **score(old_est.f_, old_est.g_),
+            **em_summary(old_est, d.u, d.y, d.outlier_mask),
+            "warnings": said,
+        }
+        print("earlier recipe", rows["earlier_recipe"], flush=True)
+    p, r = rows["physical"], rows["recipe"]
+    rows["targets"] = {
+        "rmse_ratio": r["rmse"] / p["rmse_known_x0"],
+        "rmse_ratio_same_x0_rule": r["rmse"] / p["rmse"],
+        "rejected_share": r["rejected_f"] / max(r["n_iter"], 1),
+        "cpu_ratio": r["cpu_s"] / p["cpu_s"],
+        "wall_ratio": r["wall_s"] / p["wall_s"],
+    }
+    print("targets", rows["targets"], flush=True)
+    return rows
+
+
+# ------------------------------------------------------------------------------ silverbox
+def silverbox(
+    n_train: int,
+    outliers: list[float],
+    em: bool,
+    hidden: int,
+    nx: int,
+    max_seconds: float | None,
+    max_iter: int | None = None,
+    losses=("cauchy", "squared"),
+    linear_part: bool = False,
+) -> dict[str, Any]:
+    from silverbox import arrow_rmse_mv, prepare_silverbox
+
+    from torch_nssm.blocks.linear import LinearObservation, LinearTransition
+    from torch_nssm.neural import GreyBoxTransition
+
+    results: dict[str, Any] = {
+        "n_train": n_train,
+        "hidden": hidden,
+        "nx": nx,
+        "linear_part": linear_part,
+        "rows": [],
+    }
+    for fraction in outliers:
+        data = prepare_silverbox(n_train=n_train, outlier_fraction=fraction, random_state=0)
+        u, y = data.u_train, data.y_train
+
+        def scores(f, g, data=data) -> dict[str, float]:
+            # the state's coordinates are the network's own: the first state is fitted to the arrow's
+            # first 100 samples (inside the unscored first 150)
+            x0 = fitted_first_state(f, g, data.u_arrow[:100], data.y_arrow[:100], np.zeros(nx), n=100)
+            sim = simulate(f, g, data.u_arrow, x0)[:, 0]
+            s = arrow_rmse_mv(data.to_mv(sim), data.to_mv(data.y_arrow[:, 0]))
+            return {"full_mv": s["full"], "no_extrapolation_mv": s["no_extrapolation"]}
+
+        for loss in losses:
+            if linear_part:  # x+ = A x + B u + c + MLP(x, u): a linear state-space model plus a network
+                f = GreyBoxTransition(LinearTransition(nx, 1), nx, 1, hidden=(hidden,), random_state=0)
+            else:  # x+ = x + MLP(x, u)
+                f = MLPTransition(nx, 1, hidden=(hidden,), random_state=0)
+            g = LinearObservation(nx, 1, 1, feedthrough=True)  # y = C x + D u + d: a direct input term
+            est = RobustNSSMEstimator(
+                f,
+                g,
+                x0_mean=np.zeros(nx),
+                noise="gaussian" if loss == "squared" else "student-t",
+                random_state=0,
+            )
+            clock = Clock()
+            options = NeuralFirstStageOptions(loss=loss, max_seconds=max_seconds, max_iter=max_iter)
+            warm, report = simulation_warm_start(est, u, y, options=options, return_report=True)
+            row = {
+                "outliers": fraction,
+                "fit": f"simulation error ({loss})",
+                **clock.read(),
+                **scores(warm.f, warm.g),
+                "iterations": report.iterations,
+                "best_iteration": report.best_iteration,
+                "stop": report.stop_reason,
+                "validation_losses": report.validation_losses,
+            }
+            results["rows"].append(row)
+            print(row, flush=True)
+            if em and loss == "cauchy":
+                warm.set_params(
+                    fit_Rw=False,
+                    Rw_init=np.diag(np.full(nx, 1e-6)),
+                    n_particles=100,
+                    n_iter=10,
+                    tol=0,
+                    smoother="mcmc",
+                    segment_length=1000 if n_train > 5000 else None,
+                    optimizer="adam",
+                    max_iter_mstep=20,
+                )
+                said = fit_quietly(warm, u, y)
+                row = {
+                    "outliers": fraction,
+                    "fit": "simulation error (cauchy), then EM (Student-t, Rw held)",
+                    **clock.read(),
+                    **scores(warm.f_, warm.g_),
+                    **em_summary(warm, u, y, data.outlier_mask),
+                    "warnings": said,
+                }
+                results["rows"].append(row)
+                print(row, flush=True)
+    return results
+
+
+# ------------------------------------------------------------------------------ the suite
+def suite(plants: list[str], quick: bool) -> dict[str, Any]:
+    from suite.plants import PLANTS
+
+    results: dict[str, Any] = {}
+    for name in plants:
+        plant = PLANTS[name]
+        n, n_val = (
+            (plant.quick_train, plant.quick_validation) if quick else (plant.n_train, plant.n_validation)
+        )
+        d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
+        v = d.validation
+        em_options = dict(n_iter=3, n_particles=50) if quick else {}
+        row: dict[str, Any] = {"n_train": n}
+        f, g = plant.model(plant.start)
+        clock = Clock()
+        phys = RobustNSSMEstimator(f, g, x0_mean=d.x0_guess, random_state=0, **em_options)
+        said = fit_quietly(phys, d.u, d.y)
+        row["physical"] = {
+            **clock.read(),
+            "rmse": rmse(simulate(phys.f_, phys.g_, v.u, v.x0), v.y_true),
+            "warnings": said,
+        }
+        # the user's neural f: normalised by the scales of the plant's states (the physics says them)
+        x = np.asarray(d.x)
+        dx = np.diff(x, axis=0)
+        nx, nu = x.shape[1], np.asarray(d.u).reshape(n, -1).shape[1]
+        net = MLPTransition(
+            nx,
+            nu,
+            hidden=(32,),
+            x_mean=x.mean(0),
+            x_scale=x.std(0) + 1e-12,
+            u_mean=np.asarray(d.u).reshape(n, -1).mean(0),
+            u_scale=np.asarray(d.u).reshape(n, -1).std(0) + 1e-12,
+            out_scale=dx.std(0) + 1e-12,
+            random_state=0,
+        )
+        _, g_start = plant.model(plant.start)
+        clock = Clock()
+        est = RobustNSSMEstimator(
+            net,
+            g_start,
+            x0_mean=d.x0_guess,
+            optimizer="adam",
+            max_iter_mstep=50,
+            n_iter=30,
+            random_state=0,
+            **em_options,
+        )
+        warm, report = simulation_warm_start(est, d.u, d.y, return_report=True)
+        x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, v.x0)
+        row["first_stage"] = {
+            **clock.read(),
+            "rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
+            "accepted": report.accepted,
+            "stop": report.stop_reason,
+        }
+        said = fit_quietly(warm, d.u, d.y)
+        x0 = fitted_first_state(warm.f_, warm.g_, v.u, v.y, v.x0)
+        row["neural"] = {
+            **clock.read(),
+            "rmse": rmse(simulate(warm.f_, warm.g_, v.u, x0), v.y_true),
+            **em_summary(warm, d.u, d.y, None),
+            "warnings": said,
+        }
+        row["ratio"] = row["neural"]["rmse"] / row["physical"]["rmse"]
+        results[name] = row
+        print(
+            name,
+            {
+                k: (v_ if not isinstance(v_, dict) else {kk: vv for kk, vv in v_.items() if kk != "warnings"})
+                for k, v_ in row.items()
+            },
+            flush=True,
+        )
+    return results
+
+
+# ------------------------------------------------------------------------------ main
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return str(obj)
+    return obj
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("study", choices=["pendulum", "silverbox", "suite"])
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--out", type=Path)
+    parser.add_argument("--no-old", action="store_true", help="pendulum: skip the earlier recipe")
+    parser.add_argument("--n-train", type=int, default=90_372)
+    parser.add_argument("--outliers", default="0,0.05")
+    parser.add_argument("--em", action="store_true", help="silverbox: EM after the robust training")
+    parser.add_argument("--hidden", type=int, default=64)
+    parser.add_argument("--nx", type=int, default=3)
+    parser.add_argument("--max-seconds", type=float, default=None)
+    parser.add_argument("--max-iter", type=int, default=None, help="silverbox: LBFGS iterations per phase")
+    parser.add_argument("--losses", default="cauchy,squared", help="silverbox: the training losses")
+    parser.add_argument("--linear-part", action="store_true", help="silverbox: f = linear model + network")
+    parser.add_argument("--plants", default="pendulum,tanks,oscillator,wiener_hammerstein,bouc_wen,axis")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    if args.study == "pendulum":
+        out = pendulum(args.quick, old=not args.no_old)
+    elif args.study == "silverbox":
+        fractions = [float(a) for a in args.outliers.split(",")]
+        out = silverbox(
+            args.n_train,
+            fractions,
+            args.em,
+            args.hidden,
+            args.nx,
+            args.max_seconds,
+            args.max_iter,
+            args.losses.split(","),
+        )
+    else:
+        out = suite(args.plants.split(","), args.quick)
+    if args.out:
+        args.out.write_text(json.dumps(_jsonable(out), indent=1))
+
+
+if __name__ == "__main__":
+    main()
