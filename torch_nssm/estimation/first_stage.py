@@ -408,10 +408,10 @@ def simulation_error_fit(
     horizons : "auto", list of int or None
         ``"auto"``: windows from :func:`initial_horizon`, growing by :data:`HORIZON_GROWTH` until one
         window covers each record (stopped early once two stages in a row do not improve the free
-        run), and where that leaves the records' free run between :data:`DIRECT_RANGE`'s bounds of
-        explained variance, also one window per record from the start (a robust output-error fit);
-        the best free run is kept.  A list: those window lengths in order; ``None``: one window per
-        record.
+        run), and also one window per record from the start (a robust output-error fit); the best
+        free run is kept, so the first stage simulates the records at least as well, by its judge,
+        as a robust output-error fit from the same start.  A list: those window lengths in order;
+        ``None``: one window per record.
     max_iter : int
         Levenberg-Marquardt iterations per stage.
     loss : {"cauchy", "soft_l1", "linear"}
@@ -442,8 +442,7 @@ def simulation_error_fit(
     try:
         ladder.run(plan, report, "continuation", early_stop=auto)
         full = int(data.lengths.max())
-        explained = 1.0 - min(float(ladder.best[0]), 1e100) ** 2  # judge: relative scale, may be huge
-        if auto and plan[0] < full and DIRECT_RANGE[0] <= explained < DIRECT_RANGE[1]:
+        if auto and plan[0] < full:
             params.assign(ladder.theta0)
             ladder.run([full], report, "direct", early_stop=False)
     except KeyboardInterrupt:  # Ctrl-C: the best stage completed so far
@@ -466,10 +465,11 @@ def simulation_error_fit(
     return report
 
 
-#: The direct fit (one window per record from the start) also runs when the continuation's best free
-#: run explains a share of ``y`` in this range (robust R²): below it the process noise dominates and
-#: no simulation fit is kept; above it the continuation has found the simulation.
-DIRECT_RANGE = (0.5, 0.99)
+# The direct fit (one window per record from the start) always runs after the continuation: the
+# continuation's free window states can settle a slow plant in a wrong basin that fits the
+# training record (the tanks plant: a negative upper level, h1_max 4.7 cm against 10, training
+# explained 0.996, validation RMSE 3.5 cm against output error's 0.064), where output error from
+# the start, tied to one first state, finds the physical one.
 
 #: A stage improves on the best so far when its judge is lower by this fraction.
 IMPROVEMENT = 0.01
