@@ -258,10 +258,11 @@ def test_lists_of_records_everywhere(fitted, data):
     xs, yy = fitted.simulate(us, n_samples=2)
     assert [a.shape for a in xs] == [(2, 120, 1), (2, 80, 1)]
     assert [a.shape for a in yy] == [(2, 120, 1), (2, 80, 1)]
-    # log-likelihoods add up over records (particle estimates: equal within Monte Carlo error)
+    # log-likelihoods add up over records (particle estimates: equal within Monte Carlo error, a few
+    # units here: 200 samples, 100 particles)
     ll = fitted.log_likelihood(us, ys, random_state=0)
     parts = [fitted.log_likelihood(a, b, random_state=s) for s, (a, b) in enumerate(zip(us, ys))]
-    assert ll == pytest.approx(sum(parts), abs=5.0)
+    assert ll == pytest.approx(sum(parts), abs=10.0)
 
 
 def test_fit_on_two_records_matches_one(data):

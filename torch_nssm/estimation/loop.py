@@ -270,7 +270,7 @@ class _Groups:
             scales = self.models[g].noise.convergence_scales(self.n_obs[g])
             scales = {k: v.detach().cpu().numpy() for k, v in scales.items()}
             scales["Rw"] = np.full(self.models[g].Rw.shape, math.sqrt(2.0 / max(self.n_obs[g], 1)))
-            if has_converged(self.histories[g], self.n_obs[g], options.tol, scales=scales):
+            if has_converged(self.histories[g], self.n_obs[g], options.tol, max(options.tol, 1e-4), scales):
                 self.done[g] = True
             elif it < options.n_iter:
                 update.append(j)
