@@ -408,10 +408,10 @@ def simulation_error_fit(
     horizons : "auto", list of int or None
         ``"auto"``: windows from :func:`initial_horizon`, growing by :data:`HORIZON_GROWTH` until one
         window covers each record (stopped early once two stages in a row do not improve the free
-        run), and also one window per record from the start (a robust output-error fit); the best
-        free run is kept, so the first stage simulates the records at least as well, by its judge,
-        as a robust output-error fit from the same start.  A list: those window lengths in order;
-        ``None``: one window per record.
+        run), and also one window per record (at most :data:`DIRECT_HORIZON` samples) from the
+        start (a robust output-error fit); the best free run is kept, so the first stage simulates
+        the records at least as well, by its judge, as a robust output-error fit from the start.
+        A list: those window lengths in order; ``None``: one window per record.
     max_iter : int
         Levenberg-Marquardt iterations per stage.
     loss : {"cauchy", "soft_l1", "linear"}
@@ -441,10 +441,10 @@ def simulation_error_fit(
     auto = horizons == "auto" and segment_length is None
     try:
         ladder.run(plan, report, "continuation", early_stop=auto)
-        full = int(data.lengths.max())
-        if auto and plan[0] < full:
+        direct = min(int(data.lengths.max()), DIRECT_HORIZON)
+        if auto and plan[0] < direct:
             params.assign(ladder.theta0)
-            ladder.run([full], report, "direct", early_stop=False)
+            ladder.run([direct], report, "direct", early_stop=False)
     except KeyboardInterrupt:  # Ctrl-C: the best stage completed so far
         report.interrupted = True
     except (OverflowError, FloatingPointError):  # data at the edge of the floats: the best stage so far
@@ -469,7 +469,11 @@ def simulation_error_fit(
 # continuation's free window states can settle a slow plant in a wrong basin that fits the
 # training record (the tanks plant: a negative upper level, h1_max 4.7 cm against 10, training
 # explained 0.996, validation RMSE 3.5 cm against output error's 0.064), where output error from
-# the start, tied to one first state, finds the physical one.
+# the start, tied to one first state, finds the physical one.  On records longer than
+# DIRECT_HORIZON its windows are that long (multiple shooting with long windows, batched): one
+# window over a 40,000-sample record costs about 17 s per Levenberg-Marquardt iteration (a Python
+# step loop over the whole record for every finite-difference column).
+DIRECT_HORIZON = 2048
 
 #: A stage improves on the best so far when its judge is lower by this fraction.
 IMPROVEMENT = 0.01
