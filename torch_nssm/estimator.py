@@ -545,7 +545,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             its particles at ``t - k`` are propagated ``k`` steps through ``f`` *with* process
             noise and ``g`` is averaged over them with the filter weights; for ``t < k`` the
             initial-state prior is propagated instead.  ``0`` gives the filtered outputs.
-        x0 : array-like of shape (nx,) or (n_records, nx), (mean, cov), or "estimate", optional
+        x0 : array-like of shape (nx,) or (n_records, nx), pair, or "estimate", optional
             The first state of the record(s) (default: ``x0_mean_``, the *training* record's).
             ``(mean, cov)``: what :meth:`initial_state` returns (the free run starts at ``mean``;
             the filter's prior is ``N(mean, cov)``).  ``"estimate"``: from the record's first
@@ -596,7 +596,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             See :meth:`predict`.
         robust : bool, default=False
             Score with robust scales instead of variances (no ``sample_weight``).
-        x0 : array-like, (mean, cov) or "estimate", optional
+        x0 : array-like, pair or "estimate", optional
             The first state of the record(s), as in :meth:`predict`.
         random_state : int, optional
             Seed for ``horizon``.
@@ -630,7 +630,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             Number of trajectories.
         random_state : int, RandomState or None
             Seed (default: the estimator's ``random_state``).
-        x0 : array-like of shape (nx,) or (n_records, nx), or (mean, cov), optional
+        x0 : array-like of shape (nx,) or (n_records, nx), or pair, optional
             Mean of the first state (default ``x0_mean_``); its spread stays ``x0_cov_``, or is
             ``cov`` for the pair ``(mean, cov)`` that :meth:`initial_state` returns.
 
@@ -660,7 +660,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
             As in :meth:`fit`.
         return_particles : bool, default=False
             Keep the particles and smoothing weights in the result (weighted quantile bands).
-        x0 : array-like, (mean, cov) or "estimate", optional
+        x0 : array-like, pair or "estimate", optional
             Prior mean of the first state (default ``x0_mean_``, covariance ``x0_cov_``), or the
             pair ``(mean, cov)`` of :meth:`initial_state`, as in :meth:`predict`.
         random_state : int, optional

@@ -94,7 +94,7 @@ def compare(estimator, u, y, *, horizon: int | None = None, x0=None, robust: boo
         ``None`` (default): the free-run simulation ``estimator.predict(u, x0=x0)``, MATLAB's
         ``compare(data, sys)``; ``k``: the ``k``-step-ahead predictions
         ``estimator.predict(u, y, horizon=k)``, MATLAB's ``compare(data, sys, k)``.
-    x0 : array-like, (mean, cov) or "estimate", optional
+    x0 : array-like, pair or "estimate", optional
         The first state of the record(s), as in ``estimator.predict`` (default: the training
         record's ``x0_mean_``; ``(mean, cov)``: what ``estimator.initial_state(u, y)`` returns;
         ``"estimate"``: from the record's first outputs).
