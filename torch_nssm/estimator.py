@@ -11,6 +11,8 @@ same loop over many data sets at once.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 from sklearn.base import BaseEstimator, RegressorMixin
@@ -26,7 +28,7 @@ from .core.noise import NoiseSpec
 from .diagnostics import fit_warnings
 from .estimation.estep import e_step
 from .estimation.loop import EMOptions
-from .estimation.runs import EMRunner, FitReport, RunOutcome, fit_runs
+from .estimation.runs import EMRunner, FitReport, RunOutcome, first_stage_fallback, fit_runs
 from .estimation.start import (
     StartSettings,
     check_simulation,
@@ -67,7 +69,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     x0_mean : array-like of shape (nx,)
         Mean of the prior of the first state (it also fixes ``nx``).
     x0_cov : array-like, optional
-        Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal); identity if omitted.
+        Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal).  If omitted: after a
+        kept first stage, the variance of each state along its noise-free simulation (diagonal: a
+        prior on the states' own scale); otherwise the identity.
     Rw_init : array-like, optional
         Initial process-noise covariance.  If omitted: a tenth of the variance of each state's
         change per step along the start's noise-free simulation (diagonal; ``0.1 * I`` where that
@@ -419,8 +423,10 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         ValueError, TypeError
             For bad arguments or data, before any work starts.
         NumericalError
-            If the particle weights underflow or an update is not finite; the fitted attributes
-            then hold the last good parameters.
+            If the particle weights underflow or an update is not finite in every EM run; the
+            fitted attributes then hold the last good parameters.  After a kept first stage the
+            fit instead keeps its start (the first stage's ``f`` and ``g`` with the starting noise
+            parameters) and says so in a ``RuntimeWarning``.
         """
         device = self._check_params()
         warm = bool(self.warm_start) and hasattr(self, "f_")
@@ -436,7 +442,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         runs = fit_runs(runner, start, data, self.n_jobs)  # [(EMResult, start was stable)] per restart
         report = FitReport([RunOutcome.of(*run) for run in runs], self._report_settings(), start=start)
         store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
-        best = self._best_run(runs, report, store)  # or KeyboardInterrupt / NumericalError
+        fallback = functools.partial(first_stage_fallback, runner, start, data)
+        best = self._best_run(runs, report, store, fallback)  # or KeyboardInterrupt / NumericalError
         self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
         self.simulation_model_ = runner.hold_modules
         best, outputs = self._kept_simulation(start, best, data, report)
@@ -450,7 +457,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         return StartSettings(
             self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm,
             focus=self.focus, fit_Rw=self.fit_Rw, Rw_given=self.Rw_init is not None,
-            Rv_given=self.Rv_init is not None,
+            Rv_given=self.Rv_init is not None, x0_cov_given=self.x0_cov is not None,
         )
 
     def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
@@ -463,16 +470,23 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     def _report_settings(self) -> dict:
         return {k: getattr(self, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}
 
-    def _best_run(self, runs: list, report: FitReport, store: dict):
-        """The run with the highest final log-likelihood among those without an error.  Raises
-        ``KeyboardInterrupt`` when Ctrl-C came before anything was fitted, and
-        :class:`NumericalError` when no run finished (the fitted attributes then hold the last good
-        parameters of the best run that has them)."""
+    def _best_run(self, runs: list, report: FitReport, store: dict, fallback=None):
+        """The run with the highest final log-likelihood among those without an error; when every
+        run failed on a numerical error after a kept first stage, the start evaluated by
+        ``fallback()`` (:func:`~torch_nssm.estimation.runs.first_stage_fallback`; the report's
+        ``fallback`` says so in words).  Raises ``KeyboardInterrupt`` when Ctrl-C came before
+        anything was fitted, and :class:`NumericalError` when no run finished and there is no such
+        start (the fitted attributes then hold the last good parameters of the best run that has
+        them)."""
         if runs[-1][0].interrupted and runs[-1][0].estep is None and len(runs) == 1:
             raise KeyboardInterrupt  # nothing was fitted yet
         good = report.good()
         if good:
             return runs[max(good, key=lambda i: report.outcomes[i].log_likelihood)][0]
+        kept = fallback() if fallback is not None and not runs[0][0].interrupted else None
+        if kept is not None:
+            report.fallback = report.outcomes[0].error
+            return kept
         fit_warnings.warn_fit(report, stacklevel=4)
         candidates = [run for run, _ in runs if run.estep is not None]
         if candidates:

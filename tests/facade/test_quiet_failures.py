@@ -11,7 +11,7 @@ import torch
 from torch import nn
 
 import torch_nssm.estimation.loop as loop_module
-from torch_nssm import RobustNSSMEstimator, fit_independent
+from torch_nssm import NumericalError, RobustNSSMEstimator, fit_independent
 from torch_nssm.datasets import make_paper_example
 from torch_nssm.models import PaperObservation, PaperTransition
 
@@ -201,10 +201,13 @@ def test_data_that_contradicts_the_model(data):
 
 
 def test_a_diverging_start_is_named(data):
-    """a = 1.3: f's simulation explodes; the user is told so before EM fails on it."""
+    """a = 1.3: f's simulation explodes; the user is told so before EM starts (EM may then fail on
+    a non-finite update, or end where the free run explains none of y, which is said too)."""
     with pytest.warns(RuntimeWarning, match=r"simulation of f from x0_mean diverges at step \d+"):
-        with pytest.raises(Exception):  # noqa: B017 (EM then fails on a non-finite update)
+        try:
             _est(PaperTransition(1.3, 0.5), n_iter=3).fit(data.u, data.y)
+        except NumericalError:
+            pass
 
 
 def test_restarts_draw_stable_starts():

@@ -18,6 +18,7 @@ import torch
 from conftest import (
     DTYPE,
     N_STEPS,
+    Paper41F,
     Paper41G,
     generator,
     make_linear_system,
@@ -573,3 +574,20 @@ def test_sequences_of_different_lengths_match_kalman(record):
     _check_log_likelihood(
         ll[10:], kalman_filter(*sysm.matrices(), u[:n_short], y[:n_short]).log_likelihood
     )
+
+
+def test_ffbsm_single_precision_kernel_with_huge_whitened_distances():
+    """A first-state prior far broader than the process noise (prior s.d. 1, process s.d. 1e-5: the
+    whitened distances of the first transition reach ~1e5): the single-precision kernel's exponent
+    overflows there, and those rows are recomputed exactly (finite, the double-precision kernel's
+    statistics)."""
+    rng = np.random.default_rng(3)
+    model = make_model(Paper41F(), Paper41G(), [[1e-10]], [[0.1]], 3.0, [0.0], [[1.0]])
+    us, ys = simulate(replace(model, Rw=model.Rw * 1e8), [20], rng)  # outputs with some motion
+    data = SequenceBatch.from_sequences(us, ys)
+    filt = particle_filter(model, data, 100, generator=generator(5))
+    exact = ffbsm(model, data, filt, kernel_dtype=torch.float64)
+    fast = ffbsm(model, data, filt)
+    assert torch.isfinite(fast.residual_scatter).all() and torch.isfinite(fast.transition_weights).all()
+    torch.testing.assert_close(fast.transition_weights, exact.transition_weights, rtol=0, atol=2e-6)
+    torch.testing.assert_close(fast.residual_scatter, exact.residual_scatter, rtol=1e-4, atol=0)

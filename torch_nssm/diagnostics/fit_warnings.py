@@ -80,7 +80,16 @@ def fit_messages(report) -> Messages:
     if report.kept is None:
         return
     failed = report.failed
-    if failed:
+    if report.fallback is not None:
+        yield (
+            f"EM failed on a numerical error in every run ({report.fallback}); the estimator keeps the "
+            "start: the first stage's f and g (robust simulation-error fit) with the starting noise "
+            "parameters (Rw_, Rv_ and the noise family's, not estimated), evaluated by one E-step. Its "
+            "simulations and predictions are the first stage's; to estimate the noise, refit with "
+            "other Rw_init / Rv_init, more particles, or first_stage=None",
+            RuntimeWarning,
+        )
+    elif failed:
         yield (
             f"{len(failed)} of {len(report.outcomes)} EM runs stopped on a numerical error and "
             f"were discarded (first: {failed[0].error})",
@@ -94,7 +103,8 @@ def fit_messages(report) -> Messages:
     if report.absorption:
         yield report.absorption, RuntimeWarning
     yield from explained_messages(report.explained, report.simulated)
-    yield from ending_messages(report.kept, report.settings, report.start)
+    if report.fallback is None:  # no EM iteration of the kept model to say how it ended
+        yield from ending_messages(report.kept, report.settings, report.start)
 
 
 def warn_fit(report, stacklevel: int = 1) -> None:

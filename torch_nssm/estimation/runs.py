@@ -34,6 +34,7 @@ __all__ = [
     "RunOutcome",
     "drive",
     "explained_fractions",
+    "first_stage_fallback",
     "fit_runs",
     "rejections_of",
 ]
@@ -119,6 +120,17 @@ def fit_runs(runner: EMRunner, start: Start, data: SequenceBatch, n_jobs: int | 
     return drive(
         runner, tasks, n_jobs, f"{n_runs} EM restarts", progress=True, stop=lambda run: run[0].interrupted
     )
+
+
+def first_stage_fallback(runner: EMRunner, start: Start, data: SequenceBatch) -> EMResult | None:
+    """The fit's start evaluated by one E-step, for a fit whose every EM run failed on a numerical
+    error after a kept first stage: run 0's start (the first stage's ``f`` and ``g`` with the
+    start's noise parameters), ``None`` when there is no kept first stage or its E-step fails too."""
+    if start.staged is None:
+        return None
+    only = dataclasses.replace(start, seeds=start.seeds[:1])
+    result = runner.without_iterations()(only, data, 0, progress=False)[0]
+    return result if result.error is None and result.estep is not None else None
 
 
 # --------------------------------------------------------------------------- the report
@@ -215,6 +227,9 @@ class FitReport:
         The noise family's words when it absorbs much of the data (model error taken for noise).
     outlier_weights
         The fitted outlier weights.
+    fallback : str or None
+        Every EM run failed on a numerical error (this is the first run's) and the fit keeps its
+        start after a kept first stage (:func:`first_stage_fallback`); ``None`` otherwise.
     """
 
     outcomes: list[RunOutcome]
@@ -227,6 +242,7 @@ class FitReport:
     simulated: float = math.nan
     absorption: str | None = None
     outlier_weights: Any = None
+    fallback: str | None = None
 
     @property
     def interrupted(self) -> bool:

@@ -39,6 +39,7 @@ __all__ = [
     "SimulationCheck",
     "plan_start",
     "check_simulation",
+    "state_spread",
     "restart_seeds",
     "seeded_generator",
     "copy_model",
@@ -88,8 +89,9 @@ class StartSettings:
     focus : {"simulation", "prediction"}
         What the model is for (:func:`plan_start`).
     fit_Rw : bool or "auto"
-    Rw_given, Rv_given : bool
-        Whether the user gave ``Rw_init`` / ``Rv_init`` (else the start sizes them from the data).
+    Rw_given, Rv_given, x0_cov_given : bool
+        Whether the user gave ``Rw_init`` / ``Rv_init`` / ``x0_cov`` (else the start sizes them from
+        the data).
     """
 
     first_stage: str | None
@@ -102,6 +104,7 @@ class StartSettings:
     fit_Rw: bool | str = "auto"
     Rw_given: bool = True
     Rv_given: bool = True
+    x0_cov_given: bool = True
 
 
 @dataclass
@@ -178,7 +181,8 @@ def plan_start(
     simulation for tracking) and the first state's mean, and estimates the noise around them: the
     process noise, the measurement noise (from the first stage's output errors when ``Rv_init`` is
     not given) and the outlier weights.  Otherwise EM estimates every parameter.  A process noise
-    not given starts at :func:`scaled_process_noise`.
+    not given starts at :func:`scaled_process_noise`, and after a kept first stage a first-state
+    prior not given at :func:`state_spread`.
     """
     start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
     if runs_first_stage(model, settings):
@@ -208,6 +212,10 @@ def plan_start(
         # prior, and a g that does not determine the state (a cos) lets it wander far (x0 = -19
         # on the paper's example), where a prior of the given spread holds EM's smoother
         start.model = replace(start.model, x0_mean=model.x0_mean, x0_cov=model.x0_cov)
+    if start.staged is not None and not settings.x0_cov_given:
+        start.model = replace(start.model, x0_cov=state_spread(start.model, data))
+        if simulation_model and settings.focus == "simulation":
+            start.staged = copy_model(start.model)
     start.Rv_floor = measurement_floor(data)
     if start.Rv_floor is not None and not settings.Rv_given:
         start.model = replace(start.model, noise=start.model.noise.floored(start.Rv_floor))
@@ -259,6 +267,28 @@ def scaled_process_noise(
     if d.shape[0] < 2:
         return model.Rw
     var = share * d.var(0)
+    ok = torch.isfinite(var) & (var > 0)
+    return torch.diag(torch.where(ok, var, given))
+
+
+@torch.no_grad()
+def state_spread(model: StateSpaceModel, data: SequenceBatch) -> torch.Tensor:
+    """The first state's prior covariance where ``x0_cov`` is not given, after a kept first stage:
+    the variance of each state along the model's noise-free simulation (diagonal), the range the
+    states visit in their own units; where that simulation is not finite or does not move a
+    state, that state keeps the given prior's diagonal entry (the identity's).
+
+    A prior of unit variance is 1e10 times too broad for a state of 1e-5 m: at the first step no
+    particle is near what ``y`` says, the heavy-tailed noise takes the first samples for outliers,
+    its degrees of freedom collapse and the noise estimates follow; a prior on the states' own
+    scale makes a fit the same in any units."""
+    states = prediction.free_run(model, data.u)[0]
+    given = torch.diagonal(model.x0_cov)
+    x = torch.cat(data.unpad(states))
+    x = x[torch.isfinite(x).all(-1)]
+    if x.shape[0] < 2:
+        return model.x0_cov
+    var = x.var(0)
     ok = torch.isfinite(var) & (var > 0)
     return torch.diag(torch.where(ok, var, given))
 

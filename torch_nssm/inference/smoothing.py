@@ -170,8 +170,10 @@ def ffbsm(
         Single precision (the default) halves the memory traffic of the dominant ``O(L^2)`` work;
         the states are centred on each step's filter mean before whitening, so the exponents
         carry no cancellation from large state values, and every statistic derived from the
-        products is accumulated in the particles' dtype.  Relative rounding ~1e-7, far below the
-        Monte Carlo error ``O(1/sqrt(L))`` (tests/inference/test_filter_smoother.py compares both).
+        products is accumulated in the particles' dtype; a block of steps whose whitened
+        distances exceed :data:`SINGLE_KERNEL_LIMIT` gets its kernel in the particles' dtype.
+        Relative rounding ~1e-7, far below the Monte Carlo error ``O(1/sqrt(L))``
+        (tests/inference/test_filter_smoother.py compares both).
 
     Returns
     -------
@@ -200,27 +202,50 @@ def ffbsm(
             a = logW[blk] - 0.5 * squared_norm(zf)  # (t, B, L)
             # rows [w_j, w_j (x_j - c)^T]: one product with the kernel gives s and m together, and
             # multiplying from the left reads K in its stored layout (no transposed copy)
-            dx = (X[blk.start + 1 : blk.stop + 1] - centre).to(kdtype).transpose(-1, -2)  # (t, B, nx, L)
+            kd = kdtype if _fits_kernel_dtype(zf, zx, kdtype, dtype) else dtype  # this block's precision
+            if kd != sm_all.dtype and kd == dtype:  # s and m too: the process scatter subtracts them
+                sm_all = sm_all.to(dtype)  # from the next states' scatter, nearly equal here
+            space = workspace if kd == kdtype else None
+            dx = (X[blk.start + 1 : blk.stop + 1] - centre).to(kd).transpose(-1, -2)  # (t, B, nx, L)
             if whole:
                 # (t, B, L, L), (t, B, L)
-                K, inv_d = _backward_kernels(a, zf, zx, logW[blk], kdtype, workspace)
+                K, inv_d = _backward_kernels(a, zf, zx, logW[blk], kd, space)
             for k in range(blk.stop - 1, blk.start - 1, -1):
                 i = k - blk.start
                 w = torch.exp(log_ws[k + 1])
-                w = torch.where(w < TINY_WEIGHT, 0.0, w).to(kdtype).unsqueeze(1)  # (B, 1, L)
+                w = torch.where(w < TINY_WEIGHT, 0.0, w).to(kd).unsqueeze(1)  # (B, 1, L)
                 wx = torch.cat([w, w * dx[i]], 1)  # (B, 1 + nx, L)
-                if whole:
+                if whole and kd == sm_all.dtype:
                     torch.bmm(wx * inv_d[i].unsqueeze(1), K[i], out=sm_all[k])
+                elif whole:
+                    sm_all[k] = torch.bmm(wx * inv_d[i].unsqueeze(1), K[i])
                 else:
-                    sm = torch.zeros(B, 1 + nx, L, dtype=kdtype, device=device)
+                    sm = torch.zeros(B, 1 + nx, L, dtype=kd, device=device)
                     for sl in _chunks(L, rows):
-                        Kc, inv_dc = _backward_kernels(a[i], zf[i], zx[i][:, sl], logW[k], kdtype, workspace)
+                        Kc, inv_dc = _backward_kernels(a[i], zf[i], zx[i][:, sl], logW[k], kd, space)
                         sm = torch.baddbmm(sm, wx[:, :, sl] * inv_dc.unsqueeze(1), Kc)
                     sm_all[k] = sm
                 log_s = torch.log(sm_all[k, :, 0].to(dtype))
                 log_s = log_s - torch.logsumexp(log_s, dim=-1, keepdim=True)  # guard rounding drift
                 log_ws[k] = torch.where(trans[k].unsqueeze(-1), log_s, logW[k])
     return _pairwise_statistics(data, X, log_ws, sm_all, centres)
+
+
+#: Largest squared whitened norm of a block's predictions and next states for a single-precision
+#: kernel: its exponent's terms reach that size, and their rounding (~6e-8 of them) stays below
+#: ~1e-2 in a log-weight.  A block beyond it (a first-state prior far broader than the process
+#: noise, a process noise far smaller than the states' spread) gets its kernel in the particles'
+#: precision: a whitened distance of 1e4 (squared 1e8) makes single-precision weights meaningless.
+SINGLE_KERNEL_LIMIT = 2.0**16
+
+
+def _fits_kernel_dtype(zf: Tensor, zx: Tensor, kdtype: torch.dtype, dtype: torch.dtype) -> bool:
+    """Whether a block's kernel may be computed in ``kdtype`` (always when it is the particles'
+    ``dtype``; a single-precision one within :data:`SINGLE_KERNEL_LIMIT`)."""
+    if kdtype == dtype or torch.finfo(kdtype).bits >= 64:
+        return True
+    big = torch.maximum(squared_norm(zf).amax(), squared_norm(zx).amax())
+    return bool(big <= SINGLE_KERNEL_LIMIT)
 
 
 def _backward_kernels(
@@ -235,9 +260,10 @@ def _backward_kernels(
     and the whole exponent is one matrix product with two extra columns, in base 2 (``exp2`` is
     ~4x cheaper than ``exp`` in single precision).  A row whose sum falls below
     :data:`_ROW_SUM_FLOOR` (all of it far below the bound: rare, a particle no prediction
-    reaches) is recomputed exactly with the row maximum.  On other devices (GPUs, where the
-    passes are cheap and a data-dependent fix-up would cost a host synchronisation) it is the
-    softmax itself.
+    reaches) is recomputed exactly with the row maximum, and so is a row whose sum is not finite
+    (the rounding of a single-precision exponent of huge whitened distances overflows).  On other
+    devices (GPUs, where the passes are cheap and a data-dependent fix-up would cost a host
+    synchronisation) it is the softmax itself.
 
     Parameters
     ----------
@@ -273,7 +299,10 @@ def _backward_kernels(
         out = workspace[: n_rows * n_cols].view(left.shape[0], -1, n_cols)
     E = torch.exp2_(torch.bmm(left, right, out=out)).view(*zx.shape[:-1], a.shape[-1])
     d = E.sum(-1)
-    low = torch.nonzero((d < _ROW_SUM_FLOOR).view(-1)).squeeze(-1)  # flat row numbers
+    # a row far below its bound (underflow), or above it: the single-precision exponent carries a
+    # rounding error of ~1e-7 times its terms, which at whitened distances of ~1e4 and more (a broad
+    # first-state prior against a small process noise) exceeds the exponent range and gives inf
+    low = torch.nonzero((~((d >= _ROW_SUM_FLOOR) & torch.isfinite(d))).view(-1)).squeeze(-1)  # flat rows
     if low.numel():
         J, L = zx.shape[-2], a.shape[-1]
         batch = low // J  # the kernel (step, sequence) each row belongs to
