@@ -65,6 +65,7 @@ def _stored_with_outputs(name: str) -> bool:
     return bool(code) and all(c.get("execution_count") for c in code)
 
 
+@pytest.mark.slow  # ~40 s: the stored full run is checked by test_case_study_notebooks_are_stored_executed
 def test_neural_notebook_runs(tmp_path, monkeypatch):
     nb, text = _run_fast("neural.ipynb", tmp_path, monkeypatch)
     assert "FULL=False" in text

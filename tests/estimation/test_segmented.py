@@ -162,6 +162,7 @@ def _paper_fit(y, u, seed, segment_length=None):
     return est, theta
 
 
+@pytest.mark.slow  # ~35 s: the E-step's agreement with Kalman/RTS stays in the default run
 def test_segmented_fit_equals_the_exact_fit_within_monte_carlo_error():
     """The paper's example (N = 3,000, 10 % outliers): a, b, c of the segmented fit (windows of 500)
     agree with those of the exact single pass within the spread over seeds."""
