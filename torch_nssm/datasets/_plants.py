@@ -22,7 +22,7 @@ from typing import Any, Callable
 
 import numpy as np
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 from .. import _validation as V
 from ._base import SimulatedData
@@ -221,3 +221,33 @@ def scalar_parameters(module: nn.Module, values: dict[str, float], dtype: torch.
 def parameter_values(module: nn.Module) -> dict[str, float]:
     """The module's scalar parameters as floats (``extra_repr`` of the plants' modules)."""
     return {k: float(p.detach()) for k, p in module.named_parameters() if p.dim() == 0}
+
+
+class RK4Transition(nn.Module):
+    """One classical Runge-Kutta step of ``dx/dt = rates(x, u)`` over ``self.dt``, written out as a
+    user writes it in ``f`` (the suite's continuous-time plants subclass it and define ``rates``)."""
+
+    dt: float
+
+    def rates(self, x: Tensor, u: Tensor) -> Tensor:
+        raise NotImplementedError
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        h = self.dt
+        k1 = self.rates(x, u)
+        k2 = self.rates(x + 0.5 * h * k1, u)
+        k3 = self.rates(x + 0.5 * h * k2, u)
+        k4 = self.rates(x + h * k3, u)
+        return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v:.6g}" for k, v in parameter_values(self).items()) + f", dt={self.dt:g}"
+
+
+def rk4_step(rates, x: np.ndarray, u: float, p: dict[str, float], h: float) -> np.ndarray:
+    """:class:`RK4Transition`'s step in NumPy, in the same order of operations (the generators)."""
+    k1 = rates(x, u, p)
+    k2 = rates(x + 0.5 * h * k1, u, p)
+    k3 = rates(x + 0.5 * h * k2, u, p)
+    k4 = rates(x + h * k3, u, p)
+    return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)

@@ -25,15 +25,16 @@ from torch import Tensor, nn
 
 from ._plants import (
     PlantData,
+    RK4Transition,
     check_settings,
     check_variances,
     checked_params,
     measurement_noise,
     multisine,
     noise_params,
-    parameter_values,
     process_noise,
     record,
+    rk4_step,
     scalar_parameters,
     spawn_streams,
 )
@@ -72,7 +73,7 @@ BOUC_WEN_INPUT_BAND: tuple[float, float] = (5.0, 150.0)
 BOUC_WEN_INPUT_RMS: float = 50.0
 
 
-class BoucWenTransition(nn.Module):
+class BoucWenTransition(RK4Transition):
     """One RK4 step of the Bouc-Wen oscillator (module docstring); state ``[x, x', z]``.
 
     Parameters
@@ -115,17 +116,6 @@ class BoucWenTransition(nn.Module):
         dz = self.A * vel - self.beta * torch.abs(vel) * z - self.gamma * vel * torch.abs(z)
         return torch.stack([vel, acc, dz], dim=-1)
 
-    def forward(self, x: Tensor, u: Tensor) -> Tensor:
-        h = self.dt
-        k1 = self.rates(x, u)
-        k2 = self.rates(x + 0.5 * h * k1, u)
-        k3 = self.rates(x + 0.5 * h * k2, u)
-        k4 = self.rates(x + h * k3, u)
-        return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-    def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v:.6g}" for k, v in parameter_values(self).items()) + f", dt={self.dt:g}"
-
 
 class BoucWenObservation(nn.Module):
     """``y = x``: the measured displacement (no parameters)."""
@@ -152,21 +142,12 @@ def _rates(x: np.ndarray, u: float, p: dict[str, float]) -> np.ndarray:
     return np.array([vel, acc, dz])
 
 
-def _step(x: np.ndarray, u: float, p: dict[str, float], h: float) -> np.ndarray:
-    """The RK4 step of :class:`BoucWenTransition`, in the same order of operations."""
-    k1 = _rates(x, u, p)
-    k2 = _rates(x + 0.5 * h * k1, u, p)
-    k3 = _rates(x + 0.5 * h * k2, u, p)
-    k4 = _rates(x + h * k3, u, p)
-    return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
 def _simulate(rng, n, p, Rw, Rv, rms):
     u = multisine(rng, n, BOUC_WEN_DT, BOUC_WEN_INPUT_BAND, rms)
     w = process_noise(rng, n, Rw)
     x = np.zeros((n, 3))
     for k in range(n - 1):
-        x[k + 1] = _step(x[k], u[k], p, BOUC_WEN_DT) + w[k]
+        x[k + 1] = rk4_step(_rates, x[k], u[k], p, BOUC_WEN_DT) + w[k]
     y_true = x[:, :1].copy()
     return u, x, y_true, y_true + measurement_noise(rng, n, Rv)
 

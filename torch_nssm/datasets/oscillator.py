@@ -18,15 +18,16 @@ from torch import Tensor, nn
 
 from ._plants import (
     PlantData,
+    RK4Transition,
     check_settings,
     check_variances,
     checked_params,
     measurement_noise,
     multisine,
     noise_params,
-    parameter_values,
     process_noise,
     record,
+    rk4_step,
     scalar_parameters,
     spawn_streams,
 )
@@ -63,7 +64,7 @@ OSCILLATOR_INPUT_BAND: tuple[float, float] = (3.0, 30.0)
 OSCILLATOR_INPUT_RMS: float = 4.0
 
 
-class OscillatorTransition(nn.Module):
+class OscillatorTransition(RK4Transition):
     """One RK4 step of the Duffing oscillator; state ``[x, x']`` (mm, mm/s), input the force (N).
 
     Parameters
@@ -101,17 +102,6 @@ class OscillatorTransition(nn.Module):
         acc = -2.0 * self.zeta * w * vel - w * w * pos - self.alpha * pos**3 + self.gain * u[..., 0]
         return torch.stack([vel, acc], dim=-1)
 
-    def forward(self, x: Tensor, u: Tensor) -> Tensor:
-        h = self.dt
-        k1 = self.rates(x, u)
-        k2 = self.rates(x + 0.5 * h * k1, u)
-        k3 = self.rates(x + 0.5 * h * k2, u)
-        k4 = self.rates(x + h * k3, u)
-        return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-    def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v:.6g}" for k, v in parameter_values(self).items()) + f", dt={self.dt:g}"
-
 
 class OscillatorObservation(nn.Module):
     """``y = x``: the measured position (no parameters)."""
@@ -137,21 +127,12 @@ def _rates(x: np.ndarray, u: float, p: dict[str, float]) -> np.ndarray:
     return np.array([x[1], acc])
 
 
-def _step(x: np.ndarray, u: float, p: dict[str, float], h: float) -> np.ndarray:
-    """The RK4 step of :class:`OscillatorTransition`, in the same order of operations."""
-    k1 = _rates(x, u, p)
-    k2 = _rates(x + 0.5 * h * k1, u, p)
-    k3 = _rates(x + 0.5 * h * k2, u, p)
-    k4 = _rates(x + h * k3, u, p)
-    return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
 def _simulate(rng, n, p, Rw, Rv, rms):
     u = multisine(rng, n, OSCILLATOR_DT, OSCILLATOR_INPUT_BAND, rms)
     w = process_noise(rng, n, Rw)
     x = np.zeros((n, 2))
     for k in range(n - 1):
-        x[k + 1] = _step(x[k], u[k], p, OSCILLATOR_DT) + w[k]
+        x[k + 1] = rk4_step(_rates, x[k], u[k], p, OSCILLATOR_DT) + w[k]
     y_true = x[:, :1].copy()
     return u, x, y_true, y_true + measurement_noise(rng, n, Rv)
 

@@ -18,15 +18,16 @@ from torch import Tensor, nn
 
 from ._plants import (
     PlantData,
+    RK4Transition,
     band_noise,
     check_settings,
     check_variances,
     checked_params,
     measurement_noise,
     noise_params,
-    parameter_values,
     process_noise,
     record,
+    rk4_step,
     scalar_parameters,
     spawn_streams,
 )
@@ -61,7 +62,7 @@ PENDULUM_INPUT_STD: float = 0.7
 PENDULUM_VALIDATION_X0: tuple[float, float] = (0.5, 0.0)
 
 
-class PendulumTransition(nn.Module):
+class PendulumTransition(RK4Transition):
     """One RK4 step of ``theta'' = -(g/l) sin(theta) - d theta' + b u``; state ``[theta, theta']``.
 
     Parameters
@@ -97,17 +98,6 @@ class PendulumTransition(nn.Module):
         acc = -self.g_over_l * torch.sin(theta) - self.damping * omega + self.gain * u[..., 0]
         return torch.stack([omega, acc], dim=-1)
 
-    def forward(self, x: Tensor, u: Tensor) -> Tensor:
-        h = self.dt
-        k1 = self.rates(x, u)
-        k2 = self.rates(x + 0.5 * h * k1, u)
-        k3 = self.rates(x + 0.5 * h * k2, u)
-        k4 = self.rates(x + h * k3, u)
-        return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-    def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v:.6g}" for k, v in parameter_values(self).items()) + f", dt={self.dt:g}"
-
 
 class PendulumObservation(nn.Module):
     """``y = theta``: the measured angle (no parameters)."""
@@ -132,15 +122,6 @@ def _rates(x: np.ndarray, u: float, p: dict[str, float]) -> np.ndarray:
     return np.array([x[1], acc])
 
 
-def _step(x: np.ndarray, u: float, p: dict[str, float], h: float) -> np.ndarray:
-    """The RK4 step of :class:`PendulumTransition`, in the same order of operations."""
-    k1 = _rates(x, u, p)
-    k2 = _rates(x + 0.5 * h * k1, u, p)
-    k3 = _rates(x + 0.5 * h * k2, u, p)
-    k4 = _rates(x + h * k3, u, p)
-    return x + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
-
-
 def _simulate(
     rng: np.random.Generator, n: int, x0, p: dict[str, float], Rw: np.ndarray, Rv: np.ndarray, std: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -149,7 +130,7 @@ def _simulate(
     x = np.empty((n, 2))
     x[0] = x0
     for k in range(n - 1):
-        x[k + 1] = _step(x[k], u[k], p, PENDULUM_DT) + w[k]
+        x[k + 1] = rk4_step(_rates, x[k], u[k], p, PENDULUM_DT) + w[k]
     y_true = x[:, :1].copy()
     return u, x, y_true, y_true + measurement_noise(rng, n, Rv)
 
