@@ -108,21 +108,26 @@ def _measurement_noise(
     return model.sample((n,), rng).numpy()
 
 
+def outlier_rows(rng: np.random.Generator, n: int, fraction: float) -> tuple[np.ndarray, np.ndarray]:
+    """``round(fraction * n)`` distinct samples drawn from ``rng``: their indices and the mask."""
+    n_out = int(round(fraction * n))
+    mask = np.zeros(n, dtype=bool)
+    idx = rng.choice(n, size=n_out, replace=False) if n_out > 0 else np.zeros(0, dtype=int)
+    mask[idx] = True
+    return idx, mask
+
+
 def _add_outliers(
     rng: np.random.Generator,
     y_clean: np.ndarray,
     fraction: float,
     outlier_range: tuple[float, float],
 ) -> tuple[np.ndarray, np.ndarray]:
-    n, p = y_clean.shape
-    n_out = int(round(fraction * n))
-    mask = np.zeros(n, dtype=bool)
+    idx, mask = outlier_rows(rng, y_clean.shape[0], fraction)
     y = y_clean.copy()
-    if n_out > 0:
-        idx = rng.choice(n, size=n_out, replace=False)
-        mask[idx] = True
+    if idx.size:
         lo, hi = outlier_range
-        y[idx] += rng.uniform(lo, hi, size=(n_out, p))
+        y[idx] += rng.uniform(lo, hi, size=(idx.size, y.shape[1]))
     return y, mask
 
 

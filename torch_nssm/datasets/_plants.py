@@ -25,7 +25,7 @@ import torch
 from torch import Tensor, nn
 
 from .. import _validation as V
-from ._base import SimulatedData
+from ._base import SimulatedData, outlier_rows
 
 __all__ = ["PlantData"]
 
@@ -145,16 +145,13 @@ def gross_outliers(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Gross errors on ``round(fraction * N)`` distinct samples: ``+-a * scale`` added to every output,
     ``a ~ U[OUTLIER_MAGNITUDE]`` and a random sign per sample and output; returns ``(y, mask)``."""
-    n, p = y_clean.shape
-    n_out = int(round(fraction * n))
-    mask = np.zeros(n, dtype=bool)
+    idx, mask = outlier_rows(rng, y_clean.shape[0], fraction)
     y = y_clean.copy()
-    if n_out > 0:
-        idx = rng.choice(n, size=n_out, replace=False)
-        mask[idx] = True
+    if idx.size:
+        p = y.shape[1]
         lo, hi = OUTLIER_MAGNITUDE
-        sign = rng.choice([-1.0, 1.0], size=(n_out, p))
-        y[idx] += sign * rng.uniform(lo, hi, size=(n_out, p)) * np.asarray(scale).reshape(1, p)
+        sign = rng.choice([-1.0, 1.0], size=(idx.size, p))
+        y[idx] += sign * rng.uniform(lo, hi, size=(idx.size, p)) * np.asarray(scale).reshape(1, p)
     return y, mask
 
 
