@@ -378,9 +378,10 @@ def _iterate(
     acceleration.before_mstep(groups.models[0], sub_data, sub_estep, generator)
     still, rejected = _m_step(groups, ids, sub_data, sub_estep, options, generator, it)
     if still:
-        groups.models[0] = acceleration.after_mstep(groups.models[0], rejected)
-        if options.mstep.Rv_floor is not None and options.mstep.fit_Rv:  # an extrapolated noise too
-            floored = groups.models[0].noise.floored(options.mstep.Rv_floor)
+        stepped = groups.models[0]  # the M-step floored its own noise update
+        groups.models[0] = acceleration.after_mstep(stepped, rejected)
+        if groups.models[0] is not stepped and options.mstep.Rv_floor is not None and options.mstep.fit_Rv:
+            floored = groups.models[0].noise.floored(options.mstep.Rv_floor)  # an extrapolated noise
             groups.models[0] = replace(groups.models[0], noise=floored)
         failure = _attempt(estep, still, it + 1)
         undo = acceleration.after_estep(groups.lls[0][-1], estep.latest if failure is None else None)

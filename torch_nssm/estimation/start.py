@@ -200,7 +200,7 @@ def plan_start(
             Rw = torch.maximum(Rw, torch.diag(torch.diagonal(start.model.Rw)))
         else:
             share = PROCESS_NOISE_SHARE * (SIMULATION_SHARE if simulation_model else 1.0)
-            Rw = scaled_process_noise(start.model, data, share)
+            Rw = scaled_process_noise(start.model, data, share, states=start.staged_run[0])
         start.model = replace(start.model, Rw=Rw)
     if simulation_model and settings.focus == "simulation":
         start.model = simulation_start(start.model, data, start.staged_run, settings.Rv_given)
@@ -213,8 +213,10 @@ def plan_start(
         # on the paper's example), where a prior of the given spread holds EM's smoother
         start.model = replace(start.model, x0_mean=model.x0_mean, x0_cov=model.x0_cov)
     if start.staged is not None and not settings.x0_cov_given:
-        start.model = replace(start.model, x0_cov=state_spread(start.model, data))
-        if simulation_model and settings.focus == "simulation":
+        held = simulation_model and settings.focus == "simulation"  # the first stage's own run
+        states = start.staged_run[0] if held else None
+        start.model = replace(start.model, x0_cov=state_spread(start.model, data, states=states))
+        if held:
             start.staged = copy_model(start.model)
     start.Rv_floor = measurement_floor(data)
     if start.Rv_floor is not None and not settings.Rv_given:
@@ -252,12 +254,13 @@ UNEXPLAINED_SHARE = 1.0
 
 @torch.no_grad()
 def scaled_process_noise(
-    model: StateSpaceModel, data: SequenceBatch, share: float = PROCESS_NOISE_SHARE
+    model: StateSpaceModel, data: SequenceBatch, share: float = PROCESS_NOISE_SHARE, states=None
 ) -> torch.Tensor:
     """``share`` times the variance of each state's increment along the model's
-    noise-free simulation (diagonal); where that simulation is not finite or does not move a
-    state, that state keeps the given ``Rw``'s diagonal entry."""
-    states = prediction.free_run(model, data.u)[0]
+    noise-free simulation (diagonal; ``states``: that simulation when the caller has it); where it
+    is not finite or does not move a state, that state keeps the given ``Rw``'s diagonal entry."""
+    if states is None:
+        states = prediction.free_run(model, data.u)[0]
     steps = [x[1:] - x[:-1] for x in data.unpad(states) if x.shape[0] > 1]
     given = torch.diagonal(model.Rw)
     if not steps:
@@ -272,7 +275,7 @@ def scaled_process_noise(
 
 
 @torch.no_grad()
-def state_spread(model: StateSpaceModel, data: SequenceBatch) -> torch.Tensor:
+def state_spread(model: StateSpaceModel, data: SequenceBatch, states=None) -> torch.Tensor:
     """The first state's prior covariance where ``x0_cov`` is not given, after a kept first stage:
     the variance of each state along the model's noise-free simulation (diagonal), the range the
     states visit in their own units; where that simulation is not finite or does not move a
@@ -281,8 +284,9 @@ def state_spread(model: StateSpaceModel, data: SequenceBatch) -> torch.Tensor:
     A prior of unit variance is 1e10 times too broad for a state of 1e-5 m: at the first step no
     particle is near what ``y`` says, the heavy-tailed noise takes the first samples for outliers,
     its degrees of freedom collapse and the noise estimates follow; a prior on the states' own
-    scale makes a fit the same in any units."""
-    states = prediction.free_run(model, data.u)[0]
+    scale makes a fit the same in any units.  ``states``: that simulation when the caller has it."""
+    if states is None:
+        states = prediction.free_run(model, data.u)[0]
     given = torch.diagonal(model.x0_cov)
     x = torch.cat(data.unpad(states))
     x = x[torch.isfinite(x).all(-1)]
