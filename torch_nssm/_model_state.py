@@ -82,6 +82,8 @@ class ModelState:
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
+        # whether the fit estimated the process noise (``fit`` sets it first: "auto" may hold it)
+        self.fit_Rw_ = bool(self.__dict__.get("fit_Rw_", self.fit_Rw))
         per_component = model.noise.per_component
         ow = outlier_weights(estep.smoother.log_weights, estep.e_lam, data, per_component=per_component)
         self.outlier_weights_ = ow if multi else ow[0]
@@ -213,9 +215,9 @@ class ModelState:
                 )
             model, data = source
             with limited_threads(self.n_threads):
-                est = self._e_step(model, data, self._generator(data.y.device))
+                estep_out = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
-                    model, data, est, fit_Rw=self._fitted_Rw(), fit_Rv=bool(self.fit_Rv),
+                    model, data, estep_out, fit_Rw=self.fit_Rw_, fit_Rv=bool(self.fit_Rv),
                     generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
@@ -223,9 +225,10 @@ class ModelState:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
         return self._uncertainty
 
-    def _fitted_Rw(self) -> bool:
-        """Whether the fit estimated the process noise (``fit_Rw_``; fits pickled before it: ``fit_Rw``)."""
-        return bool(self.__dict__.get("fit_Rw_", self.fit_Rw))
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if "f_" in self.__dict__ and "fit_Rw_" not in self.__dict__:
+            self.fit_Rw_ = bool(self.fit_Rw)  # a fit pickled before ``fit_Rw_`` existed
 
     def _check_fitted(self) -> torch.device:
         if not hasattr(self, "f_"):
@@ -260,8 +263,8 @@ class ModelState:
         model = self._fitted_model(device, x0, data, random_state)
         gen = self._generator(device, random_state)
         if kind == "smoother":
-            est = self._e_step(model, data, gen)
-            filt, log_w, e_lam = est.filter, est.smoother.log_weights, est.e_lam
+            estep_out = self._e_step(model, data, gen)
+            filt, log_w, e_lam = estep_out.filter, estep_out.smoother.log_weights, estep_out.e_lam
         else:
             filt = self._filter(model, data, gen)
             log_w, e_lam = filt.log_weights, latent_scales(model, data, filt)[0]

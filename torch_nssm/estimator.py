@@ -444,7 +444,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
         fallback = functools.partial(first_stage_fallback, runner, start, data)
         best = self._best_run(runs, report, store, fallback)  # or KeyboardInterrupt / NumericalError
-        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        self.fit_Rw_ = self.fit_Rw_ if warm else bool(self.fit_Rw)
         self.simulation_model_ = runner.hold_modules
         best, outputs = self._kept_simulation(start, best, data, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
@@ -463,7 +463,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
         """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; a warm start
         continues what the fit did (the process noise held or not, the modules held or not)."""
-        fit_Rw = self._fitted_Rw() if warm else None
+        fit_Rw = self.fit_Rw_ if warm else None
         hold = bool(self.__dict__.get("simulation_model_", False)) if warm else start.hold_modules
         return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw, hold)
 
