@@ -151,7 +151,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         When ``f`` or ``g`` holds a network layer, the neural first stage instead: the networks
         trained by robust simulation error over windows of doubling length, with an early stop on
         the held-out end of each record (:mod:`torch_nssm.estimation.neural_first_stage`; its
-        options and report: :func:`~torch_nssm.simulation_warm_start`).
+        options and report: :func:`~torch_nssm.simulation_start`).
         ``"auto"``: the same when ``n_iter > 0`` and ``f`` or ``g`` has free parameters, and EM
         starts there only if that free run explains at least half of ``y`` (robust R²; below it the
         process noise dominates).  ``None``: EM starts from the given values.  docs/design.md,
@@ -461,7 +461,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         )
 
     def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
-        """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; a warm start
+        """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; ``warm_start=True``
         continues what the fit did (the process noise held or not, the modules held or not)."""
         fit_Rw = self.fit_Rw_ if warm else None
         hold = bool(self.__dict__.get("simulation_model_", False)) if warm else start.hold_modules

@@ -71,7 +71,7 @@ class EMRunner:
         Number of runs (the progress bar's "run r/n").
     device : torch.device
     fit_Rw : bool or None
-        Overrides the estimator's ``fit_Rw`` in every run (a warm start continues the fit's).
+        Overrides the estimator's ``fit_Rw`` in every run (``warm_start=True`` continues the fit's).
     hold_modules : bool
         EM keeps ``f``'s and ``g``'s parameters and the first state's prior (a simulation model's
         runs: those of the first stage).
