@@ -27,8 +27,8 @@ from .core.noise import MeasurementNoise, NoiseSpec, symmetric_pd
 from .estimation.estep import latent_scales, outlier_weights
 from .estimation.start import seeded_generator
 from .inference import prediction
+from .inference.ffbsm import smoothed_moments
 from .inference.results import StateEstimate
-from .inference.smoothing import smoothed_moments
 from .metrics import robust_r2_score
 
 __all__ = ["ModelState", "INITIAL_SAMPLES", "default_rv_init"]

@@ -7,6 +7,9 @@ import importlib
 
 import pytest
 
+_OLD_SMOOTHING = "torch_nssm.inference.smoothing"
+_FFBSM, _FFBSI = "torch_nssm.inference.ffbsm", "torch_nssm.inference.ffbsi"
+
 #: (module, old name, new module, new name)
 ALIASES = [
     ("torch_nssm", "warm_start_estimator", "torch_nssm.starts", "distilled_start"),
@@ -23,6 +26,13 @@ ALIASES = [
     ("torch_nssm.blocks.warm_start", "warm_start_estimator", "torch_nssm.blocks.starts", "distilled_start"),
     ("torch_nssm.blocks.warm_start", "simulation_warm_start", "torch_nssm.blocks.starts", "simulation_start"),
     ("torch_nssm.blocks.warm_start", "WarmStartInfo", "torch_nssm.blocks.starts", "DistilledStartInfo"),
+    (_OLD_SMOOTHING, "SmootherOutput", _FFBSM, "SmootherOutput"),
+    (_OLD_SMOOTHING, "ffbsm", _FFBSM, "ffbsm"),
+    (_OLD_SMOOTHING, "smoothed_moments", _FFBSM, "smoothed_moments"),
+    (_OLD_SMOOTHING, "TINY_WEIGHT", _FFBSM, "TINY_WEIGHT"),
+    (_OLD_SMOOTHING, "ffbsi", _FFBSI, "ffbsi"),
+    (_OLD_SMOOTHING, "backward_trajectories", _FFBSI, "backward_trajectories"),
+    (_OLD_SMOOTHING, "backward_segments", _FFBSI, "backward_segments"),
 ]
 
 

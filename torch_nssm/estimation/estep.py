@@ -14,10 +14,10 @@ from .. import _workspace
 from .._ops import time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import masked_scale
+from ..inference.ffbsm import SmootherOutput
 from ..inference.filtering import FilterOutput, particle_filter, sample_initial_state
 from ..inference.resampling import get_resampler
 from ..inference.smoothers import get_smoother
-from ..inference.smoothing import SmootherOutput
 from ..inference.windows import Windows, cut
 
 __all__ = [

@@ -355,7 +355,7 @@ def transition_regression(Rw: Tensor, data: SequenceBatch, estep_out: EStepOutpu
 
 def smoothing_weights(data: SequenceBatch, estep_out: EStepOutput) -> Callable[[slice], Tensor]:
     """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed
-    (:meth:`~torch_nssm.inference.smoothing.SmootherOutput.weights_of`: possibly a view, not to be
+    (:meth:`~torch_nssm.inference.ffbsm.SmootherOutput.weights_of`: possibly a view, not to be
     modified in place)."""
     observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
     weights_of = estep_out.smoother.weights_of

@@ -17,7 +17,7 @@ At any parameter value ``theta`` (docs/uncertainty.md)::
   otherwise.
 * The second term needs the *joint* smoothing distribution, but only over a lag window of a few
   steps: ``M`` draws of pieces of trajectories from the particle approximation
-  (:func:`~torch_nssm.inference.smoothing.backward_segments`), the complete-data score of each step
+  (:func:`~torch_nssm.inference.ffbsi.backward_segments`), the complete-data score of each step
   in closed form given the residuals, and their covariances summed up to the window
   (:func:`_windowed_covariance`).
 
@@ -45,7 +45,7 @@ from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise
 from ..core.parametric import LinearInParameters
 from ..core.scales import LOG_CHOLESKY, PLAIN, WorkingScale, cholesky_and_inverse, log_cholesky_scores
-from ..inference.smoothing import backward_segments
+from ..inference.ffbsi import backward_segments
 from .estep import EStepOutput
 from .mstep import ROW_WEIGHT_CUTOFF
 
@@ -510,7 +510,7 @@ _WINDOW_PATHS = 64
 #: Sokal's window constant: the lag window is the smallest ``K`` with ``K >= c * tau(K)``.
 _SOKAL_C = 5.0
 
-#: The trajectories are drawn as pieces (:func:`~torch_nssm.inference.smoothing.backward_segments`):
+#: The trajectories are drawn as pieces (:func:`~torch_nssm.inference.ffbsi.backward_segments`):
 #: each piece owns :data:`_PIECE_CORE` steps and runs :data:`_PIECE_MARGIN` steps past them, which
 #: must exceed the lag window (else the pieces are drawn again with a wider margin).
 _PIECE_MARGIN = 12
