@@ -24,10 +24,11 @@ from ._stats import robust_scale
 from ._threads import limited_threads
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import MeasurementNoise, NoiseSpec, symmetric_pd
-from .estimation.estep import latent_scales, outlier_weights
+from .estimation.estep import e_step, latent_scales, outlier_weights
 from .estimation.start import seeded_generator
 from .inference import prediction
 from .inference.ffbsm import smoothed_moments
+from .inference.filtering import particle_filter
 from .inference.results import StateEstimate
 from .metrics import robust_r2_score
 
@@ -229,6 +230,24 @@ class ModelState:
         super().__setstate__(state)
         if "f_" in self.__dict__ and "fit_Rw_" not in self.__dict__:
             self.fit_Rw_ = bool(self.fit_Rw)  # a fit pickled before ``fit_Rw_`` existed
+
+    def _e_step(self, model, data, generator):
+        """The E-step at the final particle count (``smooth``, outlier weights)."""
+        options = self._em_options()
+        estep = options.estep
+        estep.n_particles = options.n_particles(None)
+        return e_step(model, data, estep, generator)
+
+    def _filter(self, model, data, generator):
+        """The particle filter at the final particle count (``filter``, ``predict`` with a horizon)."""
+        return particle_filter(
+            model,
+            data,
+            self._em_options().n_particles(None),
+            resampling=self.resampling,
+            ess_threshold=self.ess_threshold,
+            generator=generator,
+        )
 
     def _check_fitted(self) -> torch.device:
         if not hasattr(self, "f_"):
