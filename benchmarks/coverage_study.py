@@ -135,7 +135,7 @@ def _information(est: RobustNSSMEstimator, n_trajectories: int | None):
     estep = est._e_step(model, data, est._generator(device))
     options = {} if n_trajectories is None else dict(n_trajectories=n_trajectories)
     return observed_information(
-        model, data, estep, fit_Rw=est._fitted_Rw(), fit_Rv=bool(est.fit_Rv),
+        model, data, estep, fit_Rw=est.fit_Rw_, fit_Rv=bool(est.fit_Rv),
         generator=est._generator(device), **options,
     )
 

@@ -62,7 +62,7 @@ def _worker(impl: str, N: int, L: int, seed: int, threads: int, device: str = "c
         from torch_nssm.core.noise import GaussianNoise
         from torch_nssm.estimation.estep import EStepOptions, e_step
         from torch_nssm.estimation.mstep import MStepOptions, m_step
-        from torch_nssm.inference.smoothing import smoothed_moments
+        from torch_nssm.inference.ffbsm import smoothed_moments
         from torch_nssm.models import PaperObservation, PaperTransition
 
         torch.set_num_threads(threads)

@@ -14,7 +14,7 @@ import torch
 from torch import nn
 
 from torch_nssm import RobustNSSMEstimator
-from torch_nssm.warm_start import LinearObservation, LinearTransition
+from torch_nssm.starts import LinearObservation, LinearTransition
 
 
 class HandWritten(nn.Module):

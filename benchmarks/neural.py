@@ -7,10 +7,10 @@ wall seconds beside them, because the machines these ran on were shared):
   2,000 samples).  The physical model fitted with the defaults (``RobustNSSMEstimator(f, g,
   x0_mean=..., random_state=0)``) against the README's neural recipe, ``MLPTransition(2, 1,
   hidden=(32,))`` with ``optimizer="adam", max_iter_mstep=50, n_iter=30``, started by
-  ``simulation_warm_start`` (the network trained by robust simulation error, then EM), the same
+  ``simulation_start`` (the network trained by robust simulation error, then EM), the same
   estimator fitted with the defaults (``first_stage="auto"`` runs the same training inside ``fit``),
   and against its baselines: the same network trained by simulation error alone (the first stage), the linear
-  state-space reference of ``warm_start_estimator`` and the earlier recipe (``warm_start_estimator``
+  state-space reference of ``distilled_start`` and the earlier recipe (``distilled_start``
   then EM).  Scores: validation free-run RMSE against the noise-free angle; the physical model
   from the record's known first state (and from a fitted one), every model from a first state
   fitted to the first 200 validation samples (``fit_initial_states``).
@@ -23,7 +23,7 @@ wall seconds beside them, because the machines these ran on were shared):
   training (Student-t noise, the process noise held small).
 * ``suite`` -- the simulated plants of ``benchmarks/suite``: an ``MLPTransition`` (normalised by the
   plant's state scales as a user would from the physics) with the plant's own ``g``, trained by
-  ``simulation_warm_start`` and EM, against the physical model's default fit; validation RMSE.
+  ``simulation_start`` and EM, against the physical model's default fit; validation RMSE.
 
 Usage::
 
@@ -52,7 +52,7 @@ for _path in (HERE, HERE.parent / "examples"):
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from torch_nssm import RobustNSSMEstimator, simulation_warm_start, warm_start_estimator  # noqa: E402
+from torch_nssm import RobustNSSMEstimator, distilled_start, simulation_start  # noqa: E402
 from torch_nssm.core.model import SequenceBatch, StateSpaceModel  # noqa: E402
 from torch_nssm.estimation.neural_first_stage import (  # noqa: E402
     NeuralFirstStageOptions,
@@ -169,7 +169,7 @@ def pendulum(quick: bool = False, old: bool = True) -> dict[str, Any]:
     # the README's recipe: simulation-error training, then EM
     clock = Clock()
     opts = NeuralFirstStageOptions(max_iter=20) if quick else None
-    warm, report = simulation_warm_start(recipe(), d.u, d.y, options=opts, return_report=True)
+    warm, report = simulation_start(recipe(), d.u, d.y, options=opts, return_report=True)
     stage = clock.read()
     rows["first_stage"] = {
         **stage,
@@ -205,9 +205,9 @@ def pendulum(quick: bool = False, old: bool = True) -> dict[str, Any]:
         }
         print("default fit", rows["default_fit"], flush=True)
 
-    # the linear reference and the earlier recipe (warm_start_estimator)
+    # the linear reference and the earlier recipe (distilled_start)
     clock = Clock()
-    old_est, info = warm_start_estimator(recipe(), d.u, d.y, return_info=True)
+    old_est, info = distilled_start(recipe(), d.u, d.y, return_info=True)
     ref = info.reference
     rows["linear_reference"] = {
         **clock.read(),
@@ -287,7 +287,7 @@ def silverbox(
             )
             clock = Clock()
             options = NeuralFirstStageOptions(loss=loss, max_seconds=max_seconds, max_iter=max_iter)
-            warm, report = simulation_warm_start(est, u, y, options=options, return_report=True)
+            warm, report = simulation_start(est, u, y, options=options, return_report=True)
             row = {
                 "outliers": fraction,
                 "fit": f"simulation error ({loss})",
@@ -376,7 +376,7 @@ def suite(plants: list[str], quick: bool) -> dict[str, Any]:
             random_state=0,
             **em_options,
         )
-        warm, report = simulation_warm_start(est, d.u, d.y, return_report=True)
+        warm, report = simulation_start(est, d.u, d.y, return_report=True)
         x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, v.x0)
         row["first_stage"] = {
             **clock.read(),

@@ -12,7 +12,7 @@ Cases: the paper example (Student-t, averaged iterates, growing particle count),
 Table 1 setting after 10 iterations (``fit_independent``, 100 records, MCMC smoother), the
 per-output Student-t and the Gaussian family (fits and standard errors), Newton-accelerated fits
 (the noise parameters' squared extrapolation), a two-output joint t with missing outputs
-(autograd standard errors), simulation, the parametric bootstrap, the warm start, and the
+(autograd standard errors), simulation, the parametric bootstrap, the distilled start, and the
 simulated data sets.
 """
 
@@ -56,7 +56,7 @@ def _fit_summary(est, se: bool = True) -> dict:
 
 
 def run() -> dict:
-    from torch_nssm import RobustNSSMEstimator, fit_independent, warm_start_estimator
+    from torch_nssm import RobustNSSMEstimator, distilled_start, fit_independent
     from torch_nssm.blocks.linear import LinearObservation, LinearTransition
     from torch_nssm.datasets import make_huang_example, make_manipulator, make_paper_example
     from torch_nssm.datasets.two_sensors import make_two_sensor_example
@@ -132,8 +132,8 @@ def run() -> dict:
     res["gaussian_missing"] = _fit_summary(two("gaussian", n_iter=5).fit(d2.u, y_missing))
     print("two outputs", flush=True)
 
-    # the warm start's initial values (a linear f: the reference fit is the fit itself)
-    warm = warm_start_estimator(two("student-t"), d2.u, d2.y, n_iter=3, n_jitter=0)
+    # the distilled start's initial values (a linear f: the reference fit is the fit itself)
+    warm = distilled_start(two("student-t"), d2.u, d2.y, n_iter=3, n_jitter=0)
     res["warm"] = {k: _arrays(v) for k, v in warm.get_params(deep=False).items() if k.endswith("init")}
     return res
 

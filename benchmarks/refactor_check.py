@@ -5,7 +5,7 @@
 
 The cases: the paper example (``python -m torch_nssm``'s fit, ``n_iter=30``), the same with
 ``noise="gaussian"``, ``n_init=3``, ``acceleration="newton"``, Polyak averaging with a final
-particle count, a segmented E-step, the MCMC smoother with Adam, a warm start, two records with
+particle count, a segmented E-step, the MCMC smoother with Adam, ``warm_start=True``, two records with
 the first stage; ``noise="student-t-per-output"`` on the two-sensor data; a Table-1-like
 ``fit_independent`` study (10 data sets, 10 iterations) and one whose data sets converge at
 different iterations; a Silverbox grey-box fit where ``fit_Rw="auto"`` runs EM again (when the

@@ -14,7 +14,8 @@ MCMC E-step), whose tiny process noise (``2e-5`` on two states) makes the backwa
 rejection tries rarely accept.
 
 ``--baseline REV`` also times the implementation of a git revision (its
-``estimation/uncertainty.py`` and ``inference/smoothing.py``, loaded from ``git show`` into a
+``estimation/uncertainty.py`` and its backward sampler, ``inference/ffbsi.py`` (``inference/smoothing.py``
+in revisions before the smoothers' split), loaded from ``git show`` into a
 temporary package beside this checkout's) in the same loop, for an old-against-new comparison on
 the same machine load:
 
@@ -102,8 +103,11 @@ def _baseline(rev: str):
     their relative imports made absolute (the rest of the package is this checkout's)."""
     root = Path(__file__).resolve().parents[1]
     tmp = Path(tempfile.mkdtemp(prefix="uncertainty_baseline_"))
+    sampler = "torch_nssm/inference/ffbsi.py"
+    if subprocess.run(["git", "cat-file", "-e", f"{rev}:{sampler}"], cwd=root).returncode:
+        sampler = "torch_nssm/inference/smoothing.py"  # before FFBSm and FFBSi had a module each
     sources = {
-        "baseline_smoothing": "torch_nssm/inference/smoothing.py",
+        "baseline_smoothing": sampler,
         "baseline_uncertainty": "torch_nssm/estimation/uncertainty.py",
     }
     for name, path in sources.items():
@@ -111,7 +115,7 @@ def _baseline(rev: str):
             ["git", "show", f"{rev}:{path}"], cwd=root, check=True, capture_output=True, text=True
         ).stdout
         package = "torch_nssm.inference" if "inference" in path else "torch_nssm.estimation"
-        text = text.replace("from ..inference.smoothing import", "from baseline_smoothing import")
+        text = re.sub(r"from \.\.inference\.(smoothing|ffbsi) import", "from baseline_smoothing import", text)
         text = re.sub(r"from \.\.(\w)", r"from torch_nssm.\1", text)
         text = re.sub(r"from \.\. import", "from torch_nssm import", text)
         text = re.sub(r"from \. import", f"from {package} import", text)

@@ -62,7 +62,7 @@ html_static_path: list = []
 #: The public submodules; each gets a page listing its ``__all__``, and each class and function of
 #: it a page of its own (autosummary).  Constants are documented on the module's page.
 PUBLIC_MODULES = [
-    "noise", "neural", "warm_start", "blocks", "models", "datasets",
+    "noise", "neural", "starts", "blocks", "models", "datasets",
     "metrics", "evaluation", "diagnostics", "plotting",
 ]
 HERE = os.path.dirname(os.path.abspath(__file__))

@@ -21,15 +21,15 @@ __all__ = [
     "NumericalError",
     "fit_independent",
     "WorkerLostError",
-    "warm_start_estimator",
-    "simulation_warm_start",
+    "distilled_start",
+    "simulation_start",
     "datasets",
     "diagnostics",
     "models",
     "neural",
     "noise",
     "plotting",
-    "warm_start",
+    "starts",
 ]
 __version__ = "0.1.0"
 
@@ -42,19 +42,30 @@ _LAZY = {
     "NumericalError": (".inference.filtering", "NumericalError"),
     "fit_independent": (".estimator", "fit_independent"),
     "WorkerLostError": ("._parallel", "WorkerLostError"),
-    "warm_start_estimator": (".blocks.warm_start", "warm_start_estimator"),
-    "simulation_warm_start": (".blocks.warm_start", "simulation_warm_start"),
+    "distilled_start": (".blocks.starts", "distilled_start"),
+    "simulation_start": (".blocks.starts", "simulation_start"),
     "datasets": (".datasets", None),
     "diagnostics": (".diagnostics", None),
     "models": (".models", None),
     "neural": (".neural", None),
     "noise": (".noise", None),
     "plotting": (".plotting", None),
-    "warm_start": (".warm_start", None),
+    "starts": (".starts", None),
+}
+
+#: old public names -> (new module, attribute), served with a DeprecationWarning for one release
+_DEPRECATED = {
+    "warm_start_estimator": ("torch_nssm", "distilled_start"),
+    "simulation_warm_start": ("torch_nssm", "simulation_start"),
+    "warm_start": ("torch_nssm.starts", None),
 }
 
 
 def __getattr__(name: str):
+    if name in _DEPRECATED:
+        from ._deprecation import resolve
+
+        return resolve(__name__, name, _DEPRECATED)
     try:
         module, attr = _LAZY[name]
     except KeyError:

@@ -24,11 +24,12 @@ from ._stats import robust_scale
 from ._threads import limited_threads
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import MeasurementNoise, NoiseSpec, symmetric_pd
-from .estimation.estep import latent_scales, outlier_weights
+from .estimation.estep import e_step, latent_scales, outlier_weights
 from .estimation.start import seeded_generator
 from .inference import prediction
+from .inference.ffbsm import smoothed_moments
+from .inference.filtering import particle_filter
 from .inference.results import StateEstimate
-from .inference.smoothing import smoothed_moments
 from .metrics import robust_r2_score
 
 __all__ = ["ModelState", "INITIAL_SAMPLES", "default_rv_init"]
@@ -82,6 +83,8 @@ class ModelState:
         self.x0_mean_ = model.x0_mean.detach().cpu().numpy()
         self.x0_cov_ = model.x0_cov.detach().cpu().numpy()
         self.history_ = {k: np.asarray(v) for k, v in history.items()}
+        # whether the fit estimated the process noise (``fit`` sets it first: "auto" may hold it)
+        self.fit_Rw_ = bool(self.__dict__.get("fit_Rw_", self.fit_Rw))
         per_component = model.noise.per_component
         ow = outlier_weights(estep.smoother.log_weights, estep.e_lam, data, per_component=per_component)
         self.outlier_weights_ = ow if multi else ow[0]
@@ -213,9 +216,9 @@ class ModelState:
                 )
             model, data = source
             with limited_threads(self.n_threads):
-                est = self._e_step(model, data, self._generator(data.y.device))
+                estep_out = self._e_step(model, data, self._generator(data.y.device))
                 self._uncertainty = observed_information(
-                    model, data, est, fit_Rw=self._fitted_Rw(), fit_Rv=bool(self.fit_Rv),
+                    model, data, estep_out, fit_Rw=self.fit_Rw_, fit_Rv=bool(self.fit_Rv),
                     generator=self._generator(data.y.device),
                 )
             self._uncertainty_source = None
@@ -223,9 +226,28 @@ class ModelState:
             warnings.warn(message, RuntimeWarning, stacklevel=3)
         return self._uncertainty
 
-    def _fitted_Rw(self) -> bool:
-        """Whether the fit estimated the process noise (``fit_Rw_``; fits pickled before it: ``fit_Rw``)."""
-        return bool(self.__dict__.get("fit_Rw_", self.fit_Rw))
+    def __setstate__(self, state: dict) -> None:
+        super().__setstate__(state)
+        if "f_" in self.__dict__ and "fit_Rw_" not in self.__dict__:
+            self.fit_Rw_ = bool(self.fit_Rw)  # a fit pickled before ``fit_Rw_`` existed
+
+    def _e_step(self, model, data, generator):
+        """The E-step at the final particle count (``smooth``, outlier weights)."""
+        options = self._em_options()
+        estep = options.estep
+        estep.n_particles = options.n_particles(None)
+        return e_step(model, data, estep, generator)
+
+    def _filter(self, model, data, generator):
+        """The particle filter at the final particle count (``filter``, ``predict`` with a horizon)."""
+        return particle_filter(
+            model,
+            data,
+            self._em_options().n_particles(None),
+            resampling=self.resampling,
+            ess_threshold=self.ess_threshold,
+            generator=generator,
+        )
 
     def _check_fitted(self) -> torch.device:
         if not hasattr(self, "f_"):
@@ -260,8 +282,8 @@ class ModelState:
         model = self._fitted_model(device, x0, data, random_state)
         gen = self._generator(device, random_state)
         if kind == "smoother":
-            est = self._e_step(model, data, gen)
-            filt, log_w, e_lam = est.filter, est.smoother.log_weights, est.e_lam
+            estep_out = self._e_step(model, data, gen)
+            filt, log_w, e_lam = estep_out.filter, estep_out.smoother.log_weights, estep_out.e_lam
         else:
             filt = self._filter(model, data, gen)
             log_w, e_lam = filt.log_weights, latent_scales(model, data, filt)[0]

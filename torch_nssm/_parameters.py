@@ -3,12 +3,14 @@
 :data:`PARAMETER_CHECKS` maps each parameter to its check, in the order they run: a check takes
 the value, the parameter's name and the estimator (for checks that depend on another parameter)
 and raises a ``ValueError`` or ``TypeError`` naming the parameter and what is wrong.
-:func:`check_parameters` runs them all before any work starts; :func:`em_options` turns the
-parameters into the EM loop's options.
+:func:`check_parameters` runs them all before any work starts; :func:`em_options`,
+:func:`start_settings`, :func:`em_runner` and :func:`report_settings` turn the parameters into the
+settings of the EM loop, of the start policy, of a fit's runs and of its report.
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Callable
 
 import numpy as np
@@ -20,11 +22,20 @@ from .core.noise import NOISE_SHORTCUTS, NoiseSpec, noise_spec
 from .estimation.estep import EStepOptions
 from .estimation.loop import EMOptions
 from .estimation.mstep import MStepOptions
+from .estimation.runs import EMRunner
 from .estimation.solvers import SOLVERS, SolverSettings
+from .estimation.start import Start, StartSettings
 from .inference.resampling import RESAMPLING_SCHEMES
 from .inference.smoothers import SMOOTHERS, smoother_options
 
-__all__ = ["PARAMETER_CHECKS", "check_parameters", "em_options"]
+__all__ = [
+    "PARAMETER_CHECKS",
+    "check_parameters",
+    "em_options",
+    "start_settings",
+    "em_runner",
+    "report_settings",
+]
 
 Check = Callable[[object, str, object], None]
 
@@ -193,3 +204,28 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
         ),
         progress=progress if estimator.verbose else None,
     )
+
+
+def start_settings(estimator, warm: bool) -> StartSettings:
+    """The start policy's settings from the estimator's parameters (one run for ``warm``)."""
+    e = estimator
+    n_runs = 1 if warm else e.n_init
+    return StartSettings(
+        e.first_stage, e.n_iter, n_runs, e.init_jitter, e.random_state, warm,
+        focus=e.focus, fit_Rw=e.fit_Rw, Rw_given=e.Rw_init is not None,
+        Rv_given=e.Rv_init is not None, x0_cov_given=e.x0_cov is not None,
+    )  # fmt: skip
+
+
+def em_runner(estimator, device: torch.device, warm: bool, start: Start) -> EMRunner:
+    """One EM run of a fit: a simulation model's keeps ``f`` and ``g``; ``warm_start=True``
+    continues what the fit did (the process noise held or not, the modules held or not)."""
+    fit_Rw = estimator.fit_Rw_ if warm else None
+    hold = bool(estimator.__dict__.get("simulation_model_", False)) if warm else start.hold_modules
+    make_options = functools.partial(em_options, estimator)
+    return EMRunner(make_options, estimator.n_threads, estimator.n_init, device, fit_Rw, hold)
+
+
+def report_settings(estimator) -> dict:
+    """The settings a fit's report quotes in its warnings."""
+    return {k: getattr(estimator, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}

@@ -494,3 +494,9 @@ def check_data_against_model(data, f: nn.Module, g: nn.Module, nu: int, p: int) 
             UserWarning,
             stacklevel=5,
         )
+
+
+def is_1d_record(y, multi: bool) -> bool:
+    """Whether the (first) record of ``y`` is 1-D (its predictions then come back 1-D)."""
+    first = y[0] if multi else y
+    return (first.dim() if isinstance(first, torch.Tensor) else np.asarray(first).ndim) == 1

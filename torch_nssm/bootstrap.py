@@ -53,7 +53,7 @@ def parameter_values(est) -> dict:
         for name, p in getattr(est, f"{label}_").named_parameters():
             if p.requires_grad:
                 out[f"{label}.{name}"] = p.detach().cpu().numpy().copy()
-    if est._fitted_Rw():
+    if est.fit_Rw_:
         out["Rw"] = np.asarray(est.Rw_)
     for name in est._fitted_noise().estimated(fit_Rv=bool(est.fit_Rv)):
         out[name] = np.asarray(getattr(est, f"{name}_"))
@@ -103,7 +103,7 @@ def parametric_bootstrap(est, u, *, n_boot: int = 100, level: float = 0.95, rand
         n_init=1,
         warm_start=False,
         first_stage=None,
-        fit_Rw=est._fitted_Rw(),  # what the fit did (fit_Rw="auto" may have held the process noise)
+        fit_Rw=est.fit_Rw_,  # what the fit did (fit_Rw="auto" may have held the process noise)
         segment_length=None,  # fit_independent runs whole records (the bootstrap records are batched)
         verbose=0,
         random_state=int(rs.randint(2**31 - 1)),

@@ -21,21 +21,23 @@ from torch import nn
 from . import _validation as V
 from ._model_state import ModelState
 from ._module_params import ModuleParams
-from ._parameters import check_parameters, em_options
+from ._parameters import check_parameters, em_options, em_runner, report_settings, start_settings
 from ._threads import with_thread_limit
-from .core.model import SequenceBatch
 from .core.noise import NoiseSpec
 from .diagnostics import fit_warnings
-from .estimation.estep import e_step
 from .estimation.loop import EMOptions
-from .estimation.runs import EMRunner, FitReport, RunOutcome, first_stage_fallback, fit_runs
-from .estimation.start import (
-    StartSettings,
-    check_simulation,
-    plan_start,
+from .estimation.runs import (
+    FitReport,
+    RunOutcome,
+    best_run,
+    first_stage_fallback,
+    fit_runs,
+    kept_outputs,
+    last_good_run,
 )
+from .estimation.start import plan_start
 from .inference import prediction
-from .inference.filtering import NumericalError, particle_filter
+from .inference.filtering import NumericalError
 from .studies import fit_independent
 
 __all__ = ["RobustNSSMEstimator", "fit_independent"]
@@ -151,7 +153,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         When ``f`` or ``g`` holds a network layer, the neural first stage instead: the networks
         trained by robust simulation error over windows of doubling length, with an early stop on
         the held-out end of each record (:mod:`torch_nssm.estimation.neural_first_stage`; its
-        options and report: :func:`~torch_nssm.simulation_warm_start`).
+        options and report: :func:`~torch_nssm.simulation_start`).
         ``"auto"``: the same when ``n_iter > 0`` and ``f`` or ``g`` has free parameters, and EM
         starts there only if that free run explains at least half of ``y`` (robust R²; below it the
         process noise dominates).  ``None``: EM starts from the given values.  docs/design.md,
@@ -382,23 +384,6 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         """The EM loop's settings from the estimator's parameters (``fit_Rw`` overrides theirs)."""
         return em_options(self, progress, fit_Rw)
 
-    def _e_step(self, model, data, generator):
-        """The E-step at the final particle count (``smooth``, outlier weights)."""
-        options = self._em_options()
-        estep = options.estep
-        estep.n_particles = options.n_particles(None)
-        return e_step(model, data, estep, generator)
-
-    def _filter(self, model, data, generator):
-        return particle_filter(
-            model,
-            data,
-            self._em_options().n_particles(None),
-            resampling=self.resampling,
-            ess_threshold=self.ess_threshold,
-            generator=generator,
-        )
-
     # ------------------------------------------------------------------ fitting
     @with_thread_limit
     def fit(self, u, y) -> RobustNSSMEstimator:
@@ -432,75 +417,36 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         warm = bool(self.warm_start) and hasattr(self, "f_")
         data, multi = self._batch(u, y, device, fitted=warm)
         base = self._fitted_model(device) if warm else self._initial_model(data, device)
-        start = plan_start(base, data, self._start_settings(warm))  # first stage, divergence limit, seeds
+        start = plan_start(base, data, start_settings(self, warm))  # first stage, divergence limit, seeds
         if not warm:
             self.first_stage_ = start.first_stage
         fit_warnings.warn_start(start, stacklevel=3)
-        runner = self._runner(device, warm, start)
+        runner = em_runner(self, device, warm, start)
         if start.interrupted:  # Ctrl-C in the first stage: its best stage, evaluated, and no EM
             runner, start.seeds = runner.without_iterations(), start.seeds[:1]
         runs = fit_runs(runner, start, data, self.n_jobs)  # [(EMResult, start was stable)] per restart
-        report = FitReport([RunOutcome.of(*run) for run in runs], self._report_settings(), start=start)
-        store = dict(data=data, multi=multi, warm=warm, y_1d=_is_1d(y, multi))
+        report = FitReport([RunOutcome.of(*run) for run in runs], report_settings(self), start=start)
+        store = dict(data=data, multi=multi, warm=warm, y_1d=V.is_1d_record(y, multi))
         fallback = functools.partial(first_stage_fallback, runner, start, data)
-        best = self._best_run(runs, report, store, fallback)  # or KeyboardInterrupt / NumericalError
-        self.fit_Rw_ = self._fitted_Rw() if warm else bool(self.fit_Rw)
+        best = best_run(runs, report, fallback)  # or KeyboardInterrupt; None: every run failed
+        if best is None:
+            self._raise_numerical_error(runs, report, store)
+        self.fit_Rw_ = self.fit_Rw_ if warm else bool(self.fit_Rw)
         self.simulation_model_ = runner.hold_modules
-        best, outputs = self._kept_simulation(start, best, data, report)
+        outputs = kept_outputs(start, best, data, report)
         self._store_run(best, init_lls=report.init_log_likelihoods(), **store)
         report.describe_kept(best, data, outputs, self.outlier_weights_)
         fit_warnings.warn_fit(report, stacklevel=3)
         return self
 
-    def _start_settings(self, warm: bool) -> StartSettings:
-        n_runs = 1 if warm else self.n_init
-        return StartSettings(
-            self.first_stage, self.n_iter, n_runs, self.init_jitter, self.random_state, warm,
-            focus=self.focus, fit_Rw=self.fit_Rw, Rw_given=self.Rw_init is not None,
-            Rv_given=self.Rv_init is not None, x0_cov_given=self.x0_cov is not None,
-        )
-
-    def _runner(self, device: torch.device, warm: bool, start) -> EMRunner:
-        """One EM run of this fit: a simulation model's keeps ``f`` and ``g``; a warm start
-        continues what the fit did (the process noise held or not, the modules held or not)."""
-        fit_Rw = self._fitted_Rw() if warm else None
-        hold = bool(self.__dict__.get("simulation_model_", False)) if warm else start.hold_modules
-        return EMRunner(self._em_options, self.n_threads, self.n_init, device, fit_Rw, hold)
-
-    def _report_settings(self) -> dict:
-        return {k: getattr(self, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}
-
-    def _best_run(self, runs: list, report: FitReport, store: dict, fallback=None):
-        """The run with the highest final log-likelihood among those without an error; when every
-        run failed on a numerical error after a kept first stage, the start evaluated by
-        ``fallback()`` (:func:`~torch_nssm.estimation.runs.first_stage_fallback`; the report's
-        ``fallback`` says so in words).  Raises ``KeyboardInterrupt`` when Ctrl-C came before
-        anything was fitted, and :class:`NumericalError` when no run finished and there is no such
-        start (the fitted attributes then hold the last good parameters of the best run that has
-        them)."""
-        if runs[-1][0].interrupted and runs[-1][0].estep is None and len(runs) == 1:
-            raise KeyboardInterrupt  # nothing was fitted yet
-        good = report.good()
-        if good:
-            return runs[max(good, key=lambda i: report.outcomes[i].log_likelihood)][0]
-        kept = fallback() if fallback is not None and not runs[0][0].interrupted else None
-        if kept is not None:
-            report.fallback = report.outcomes[0].error
-            return kept
+    def _raise_numerical_error(self, runs: list, report: FitReport, store: dict):
+        """Warn from the report of a fit whose every run failed, keep the last good parameters of
+        the best run that has them as the fitted attributes, and raise :class:`NumericalError`."""
         fit_warnings.warn_fit(report, stacklevel=4)
-        candidates = [run for run, _ in runs if run.estep is not None]
-        if candidates:
-            last = max(candidates, key=lambda run: run.log_likelihood)
+        last = last_good_run(runs)
+        if last is not None:
             self._store_run(last, init_lls=report.init_log_likelihoods(), **store)
         raise NumericalError(fit_warnings.error_message(report.outcomes[0]))
-
-    def _kept_simulation(self, start, best, data: SequenceBatch, report: FitReport):
-        """The kept run and its noise-free outputs ``(T, B, p)``; after a kept first stage, the
-        comparison of the two simulations (``report.simulation``)."""
-        outputs = prediction.free_run(best.model, data.u)[1]
-        if start.staged is not None:
-            report.simulation = check_simulation(start, best, outputs, data)
-        return best, outputs
 
     # ------------------------------------------------------------------ standard errors
     @property
@@ -749,8 +695,3 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         mean, cov = mean.cpu().numpy(), cov.cpu().numpy()
         return (mean, cov) if multi else (mean[0], cov[0])
 
-
-
-def _is_1d(y, multi: bool) -> bool:
-    first = y[0] if multi else y
-    return (first.dim() if isinstance(first, torch.Tensor) else np.asarray(first).ndim) == 1

@@ -15,6 +15,7 @@ from sklearn.utils import check_random_state
 
 from . import _parallel
 from . import _validation as V
+from ._parameters import check_parameters, em_options, report_settings
 from ._threads import limited_threads
 from .core.model import SequenceBatch
 from .diagnostics.fit_warnings import warn_start, warn_study
@@ -66,7 +67,7 @@ def fit_independent(
     index of the data set)`` (:class:`~torch_nssm.inference.random.SequenceStreams`): its fit is
     the same whatever data sets it is batched with and whatever the number of workers or chunks.
     """
-    device = estimator._check_params()
+    device = check_parameters(estimator)
     _check_study_settings(estimator)
     datas, y_1d = _data_sets(estimator, u, y, device)
     n_sets = len(datas)
@@ -84,9 +85,8 @@ def fit_independent(
     except _parallel.WorkerLostError as exc:
         raise _lost_data_sets(exc, chunks, n_sets) from exc
     fits = [fit for part in parts for fit, _ in part]
-    settings = {k: getattr(estimator, k) for k in ("n_iter", "tol", "optimizer", "learning_rate")}
     outcomes = [outcome for part in parts for _, outcome in part]
-    warn_study(FitReport(outcomes, settings, study=True), stacklevel=2)
+    warn_study(FitReport(outcomes, report_settings(estimator), study=True), stacklevel=2)
     return fits
 
 
@@ -154,7 +154,7 @@ def _fit_chunk(
         models = [_start(est_b, data_b, device) for est_b, data_b in zip(estimators, datas)]
         all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
         n = len(indices)
-        options = estimator._em_options(f"robust EM x{n}")
+        options = em_options(estimator, f"robust EM x{n}")
         options.progress = f"robust EM x{n}" if progress else None
         streams = SequenceStreams([sequence_seed(entropy, b) for b in indices], device)
         options.mstep.solver.generator = streams  # each data set's minibatch orders from its stream

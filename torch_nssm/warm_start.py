@@ -1,5 +1,16 @@
-"""Public path of the warm start: a re-export of :mod:`torch_nssm.blocks.warm_start` (with the
-linear reference blocks of :mod:`torch_nssm.blocks.linear`)."""
+"""Deprecated: :mod:`torch_nssm.starts` (``warm_start_estimator`` is
+:func:`~torch_nssm.starts.distilled_start`, ``simulation_warm_start`` is
+:func:`~torch_nssm.starts.simulation_start`)."""
 
-from .blocks.warm_start import *  # noqa: F403
-from .blocks.warm_start import __all__  # noqa: F401
+from ._deprecation import module_getattr
+
+_STARTS = "torch_nssm.starts"
+_ALIASES = {
+    "warm_start_estimator": (_STARTS, "distilled_start"),
+    "simulation_warm_start": (_STARTS, "simulation_start"),
+    "WarmStartInfo": (_STARTS, "DistilledStartInfo"),
+    "distill": (_STARTS, "distill"),
+    "LinearTransition": (_STARTS, "LinearTransition"),
+    "LinearObservation": (_STARTS, "LinearObservation"),
+}
+__getattr__ = module_getattr(__name__, _ALIASES)

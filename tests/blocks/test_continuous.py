@@ -309,10 +309,10 @@ def test_a_neural_ode_through_the_wrapper():
         reference.fit_normalisation(x.numpy())
 
 
-def test_warm_start_of_a_neural_ode():
-    """warm_start_estimator sets the MLP derivative's normalisation through the wrapper and distils
+def test_distilled_start_of_a_neural_ode():
+    """distilled_start sets the MLP derivative's normalisation through the wrapper and distils
     the transition from the reference linear model."""
-    from torch_nssm import warm_start_estimator
+    from torch_nssm import distilled_start
     from torch_nssm.datasets import make_paper_example
     from torch_nssm.models import PaperObservation
 
@@ -321,7 +321,7 @@ def test_warm_start_of_a_neural_ode():
     est = RobustNSSMEstimator(f, PaperObservation(1.0), x0_mean=[0.0], n_particles=30, random_state=0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(est, data.u, data.y, n_iter=3, distill_iter=100, return_info=True)
+        warm, info = distilled_start(est, data.u, data.y, n_iter=3, distill_iter=100, return_info=True)
     assert info.f_action == "distilled" and info.f_error < 0.1
     assert warm.f.rhs.out_scale.item() != 1.0  # the increments' scale, not the default
     assert est.f.rhs.out_scale.item() == 1.0  # the user's module is not changed

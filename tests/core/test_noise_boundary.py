@@ -1,7 +1,7 @@
 """The estimation machinery does not name a noise family's own parameters: no identifier, attribute,
 keyword or string in the code of ``torch_nssm`` outside ``core/noise/`` says ``dof`` or ``student``
 (docstrings and comments may, as examples).  A family's parameters reach the estimator, the EM loop,
-the standard errors, the acceleration, the warm start, the bootstrap and the data sets through
+the standard errors, the acceleration, the starts, the bootstrap and the data sets through
 the family's methods only (``core/noise/base.py``).
 
 Left out, with the reason:

@@ -21,8 +21,8 @@ from torch_nssm.core.noise import (
     masked_scale,
     sample_student_t,
 )
+from torch_nssm.inference.ffbsm import ffbsm
 from torch_nssm.inference.filtering import FilterOutput, particle_filter
-from torch_nssm.inference.smoothing import ffbsm
 
 VAR = np.array([0.5, 0.2, 1.5])
 DOF = np.array([1.5, 4.0, 25.0])

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from torch_nssm._ops import broadcast_leading, linear_combination, small_matmul, squared_norm, time_blocks
+from torch_nssm.inference.ffbsi import _mcmc_block
 from torch_nssm.inference.resampling import _GUIDE_MIN_DRAWS, cumulative_weights, inverse_cdf, systematic
-from torch_nssm.inference.smoothing import _mcmc_block
 
 
 @pytest.mark.parametrize(

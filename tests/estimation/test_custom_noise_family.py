@@ -255,7 +255,7 @@ def test_closed_form_scores_of_the_family_match_autograd(registered):
     from torch_nssm.core.model import SequenceBatch, StateSpaceModel
     from torch_nssm.estimation import uncertainty as U
     from torch_nssm.estimation.estep import EStepOptions, e_step
-    from torch_nssm.inference.smoothing import backward_segments
+    from torch_nssm.inference.ffbsi import backward_segments
 
     u, y = _record(80, seed=2)
     t = lambda v: torch.tensor(v, dtype=torch.float64)  # noqa: E731

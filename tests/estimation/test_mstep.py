@@ -41,8 +41,8 @@ from torch_nssm.estimation.solvers import (
     fit_weighted_regression,
     weighted_loss,
 )
+from torch_nssm.inference.ffbsm import ffbsm
 from torch_nssm.inference.filtering import FilterOutput
-from torch_nssm.inference.smoothing import ffbsm
 
 
 class LinearFLip(LinearInParameters):

@@ -21,7 +21,7 @@ from torch_nssm.blocks.linear import LinearObservation, LinearTransition
 from torch_nssm.core.model import SequenceBatch
 from torch_nssm.estimation import uncertainty as U
 from torch_nssm.estimation.mstep import transition_regression
-from torch_nssm.inference.smoothing import backward_segments, backward_trajectories
+from torch_nssm.inference.ffbsi import backward_segments, backward_trajectories
 
 A = np.array([[0.8, 0.2], [-0.3, 0.6]])
 B = np.array([[1.0], [0.5]])

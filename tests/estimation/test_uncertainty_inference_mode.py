@@ -16,7 +16,7 @@ from torch_nssm.core.model import SequenceBatch
 from torch_nssm.estimation.acceleration import information_at
 from torch_nssm.estimation.estep import EStepOptions, e_step
 from torch_nssm.estimation.uncertainty import observed_information
-from torch_nssm.inference.smoothing import backward_segments
+from torch_nssm.inference.ffbsi import backward_segments
 
 
 def _paper_estep():

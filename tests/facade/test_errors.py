@@ -13,7 +13,7 @@ import scipy.sparse
 import torch
 from torch import nn
 
-import torch_nssm.estimator as estimator_module
+import torch_nssm._model_state as model_state_module
 from torch_nssm import RobustNSSMEstimator
 from torch_nssm.models import PaperObservation, PaperTransition
 
@@ -50,8 +50,8 @@ def no_work(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("work started before the arguments were checked")
 
-    monkeypatch.setattr(estimator_module, "e_step", forbidden)
-    monkeypatch.setattr(estimator_module, "particle_filter", forbidden)
+    monkeypatch.setattr(model_state_module, "e_step", forbidden)  # the estimator's E-step and filter
+    monkeypatch.setattr(model_state_module, "particle_filter", forbidden)
 
 
 BAD_DATA = [

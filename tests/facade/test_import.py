@@ -69,7 +69,7 @@ def test_import_emits_no_warning():
 def test_importing_the_package_and_its_modules_emits_no_warning():
     code = (
         "import torch_nssm, torch_nssm.estimator, torch_nssm.plotting, torch_nssm.datasets, "
-        "torch_nssm.models, torch_nssm.neural, torch_nssm.warm_start, torch_nssm.cli, "
+        "torch_nssm.models, torch_nssm.neural, torch_nssm.starts, torch_nssm.cli, "
         "torch_nssm.reproduce"
     )
     res = _run(code, "-W", "error")
@@ -129,12 +129,12 @@ def test_unknown_name_raises_attribute_error():
 
 def test_public_paths_of_moved_modules():
     """The old import paths re-export the objects of their new homes."""
-    from torch_nssm import blocks, models, neural, warm_start
+    from torch_nssm import blocks, models, neural, starts
     from torch_nssm.datasets import manipulator, paper
 
     assert neural.MLPTransition is blocks.MLPTransition
-    assert warm_start.warm_start_estimator is blocks.warm_start_estimator is torch_nssm.warm_start_estimator
-    assert warm_start.LinearTransition is blocks.LinearTransition
+    assert starts.distilled_start is blocks.distilled_start is torch_nssm.distilled_start
+    assert starts.LinearTransition is blocks.LinearTransition
     assert models.PaperTransition is paper.PaperTransition
     assert models.ManipulatorTransition is manipulator.ManipulatorTransition
     assert set(neural.__all__) <= set(dir(neural))

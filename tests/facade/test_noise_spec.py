@@ -1,6 +1,6 @@
 """``noise=`` as a specification object (``torch_nssm.noise``): the same fit as its name with the
 shortcut parameters, scikit-learn's parameter handling, the refusal of an object together with
-changed shortcuts, and the starts taken at a fitted noise (warm start, bootstrap)."""
+changed shortcuts, and the starts taken at a fitted noise (distilled start, bootstrap)."""
 
 from __future__ import annotations
 
@@ -111,12 +111,12 @@ def test_starts_at_a_fitted_noise_keep_the_way_it_was_given(data):
     assert start == {"noise": StudentT(dof=fitted.dof_, dof_bounds=(1.0, 100.0))}
 
 
-def test_warm_start_and_bootstrap_with_the_per_output_family():
-    """The per-output family's fitted dofs (one per output) start the next fit: the warm start's
+def test_distilled_start_and_bootstrap_with_the_per_output_family():
+    """The per-output family's fitted dofs (one per output) start the next fit: the distilled start's
     ``dof_init`` and the bootstrap's refits."""
     from torch_nssm.blocks.linear import LinearObservation, LinearTransition
     from torch_nssm.datasets.two_sensors import make_two_sensor_example
-    from torch_nssm.warm_start import warm_start_estimator
+    from torch_nssm.starts import distilled_start
 
     d = make_two_sensor_example(150, glitch_fraction=0.1, random_state=0)
     g = LinearObservation(2, 1, 2)
@@ -127,7 +127,7 @@ def test_warm_start_and_bootstrap_with_the_per_output_family():
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(est, d.u, d.y, n_iter=3, n_jitter=0, return_info=True)
+        warm, info = distilled_start(est, d.u, d.y, n_iter=3, n_jitter=0, return_info=True)
         np.testing.assert_array_equal(warm.dof_init, info.reference.dof_)
         assert warm.dof_init.shape == (2,) and np.all(warm.dof_init != 10.0)
         fitted = warm.fit(d.u, d.y)

@@ -1,7 +1,7 @@
 """The README's Python examples run as written (with a few EM iterations), in order, in one namespace.
 
 Only the sizes are shrunk (``n_iter``, ``n_particles``, ``max_iter_mstep``, the pendulum's
-``n_samples``, the warm start's reference fit and the simulation-error training), so the README and
+``n_samples``, the distilled start's reference fit and the simulation-error training), so the README and
 the code cannot drift apart unnoticed.
 """
 
@@ -53,17 +53,17 @@ def test_readme_python_blocks_run(monkeypatch):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torch_nssm.blocks import warm_start as ws
+    from torch_nssm.blocks import starts as ws
 
-    # the warm start's reference fit and distillation, shrunk like the fits above
-    small = functools.partial(ws.warm_start_estimator, n_iter=2, distill_iter=10)
-    monkeypatch.setattr(torch_nssm, "warm_start_estimator", small, raising=False)
+    # the distilled start's reference fit and distillation, shrunk like the fits above
+    small = functools.partial(ws.distilled_start, n_iter=2, distill_iter=10)
+    monkeypatch.setattr(torch_nssm, "distilled_start", small, raising=False)
     # and the networks' simulation-error training (a few LBFGS iterations over short windows)
     from torch_nssm.estimation.neural_first_stage import NeuralFirstStageOptions
 
     short = NeuralFirstStageOptions(horizon=20, max_horizon=20, max_iter=5)
-    small_sim = functools.partial(ws.simulation_warm_start, options=short)
-    monkeypatch.setattr(torch_nssm, "simulation_warm_start", small_sim, raising=False)
+    small_sim = functools.partial(ws.simulation_start, options=short)
+    monkeypatch.setattr(torch_nssm, "simulation_start", small_sim, raising=False)
     namespace: dict = {"__name__": "readme"}
     n_threads = torch.get_num_threads()
     try:
@@ -77,4 +77,4 @@ def test_readme_python_blocks_run(monkeypatch):
         plt.close("all")
     assert torch.get_num_threads() == n_threads
     assert isinstance(namespace["a_hat"], float)
-    assert hasattr(namespace["est"], "f_")  # the warm-started estimator was fitted
+    assert hasattr(namespace["est"], "f_")  # the started estimator was fitted

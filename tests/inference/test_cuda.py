@@ -25,8 +25,9 @@ from torch_nssm.core.model import SequenceBatch, StateSpaceModel
 from torch_nssm.core.noise import MeasurementNoise
 from torch_nssm.datasets import make_paper_example
 from torch_nssm.estimation.estep import EStepOptions, e_step
+from torch_nssm.inference.ffbsi import ffbsi
+from torch_nssm.inference.ffbsm import ffbsm, smoothed_moments
 from torch_nssm.inference.filtering import particle_filter
-from torch_nssm.inference.smoothing import ffbsi, ffbsm, smoothed_moments
 from torch_nssm.models import PaperObservation, PaperTransition
 
 #: The device under test; ``TORCH_NSSM_TEST_DEVICE=cpu`` runs these tests on the CPU (a check of the

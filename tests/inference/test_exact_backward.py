@@ -1,4 +1,4 @@
-"""The exact fallback draw of the backward sampler (torch_nssm.inference.smoothing._exact_backward)
+"""The exact fallback draw of the backward sampler (torch_nssm.inference.ffbsi._exact_backward)
 against the backward kernel computed directly, in both of its layouts of the pairs' tables and in its
 direct form (one table per index, one state)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torch_nssm.inference import smoothing
-from torch_nssm.inference.smoothing import _exact_backward
+from torch_nssm.inference import ffbsi
+from torch_nssm.inference.ffbsi import _exact_backward
 
 
 def _kernel(zf: torch.Tensor, lw: torch.Tensor, zx: torch.Tensor, row: int, nxt: int) -> torch.Tensor:
@@ -25,7 +25,7 @@ def test_exact_backward_draws_follow_the_backward_kernel(crowded, nx, direct, mo
     per particle (cells with probability above 1e-3), with the pairs spread over the rows (one
     padded batched product) or crowded in one row of many (the rows' predictions gathered), or, for
     one state, each index's table built directly; particles of zero filter weight are never drawn."""
-    monkeypatch.setattr(smoothing, "_EXACT_DIRECT_MAX", 1 << 30 if direct else 0)
+    monkeypatch.setattr(ffbsi, "_EXACT_DIRECT_MAX", 1 << 30 if direct else 0)
     gen = torch.Generator().manual_seed(0)
     R, L, n = (12, 40, 4000)
     zf = torch.randn(R, L, nx, dtype=torch.float64, generator=gen) * 1.5

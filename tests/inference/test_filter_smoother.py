@@ -36,9 +36,10 @@ from torch import nn
 from torch_nssm._ops import squared_norm
 from torch_nssm.core.model import SequenceBatch
 from torch_nssm.core.noise import MaskedScale
+from torch_nssm.inference.ffbsi import ffbsi
+from torch_nssm.inference.ffbsm import _backward_kernels, ffbsm, smoothed_moments
 from torch_nssm.inference.filtering import FilterOutput, NumericalError, particle_filter
 from torch_nssm.inference.resampling import RESAMPLING_SCHEMES
-from torch_nssm.inference.smoothing import _backward_kernels, ffbsi, ffbsm, smoothed_moments
 
 # --------------------------------------------------------------------------- the reference itself
 

@@ -10,9 +10,9 @@ import torch
 from conftest import paper_model, simulate
 
 from torch_nssm.core.model import SequenceBatch
+from torch_nssm.inference.ffbsi import ffbsi
 from torch_nssm.inference.filtering import particle_filter
 from torch_nssm.inference.random import SequenceStreams, sequence_seeds
-from torch_nssm.inference.smoothing import ffbsi
 
 LENGTHS = [30, 45, 12]
 

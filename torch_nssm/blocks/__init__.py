@@ -1,4 +1,4 @@
-"""Ready-made building blocks for ``f`` and ``g``, and the warm start of neural models.
+"""Ready-made building blocks for ``f`` and ``g``, and the starts of neural models.
 
 * :mod:`~torch_nssm.blocks.neural` -- :class:`MLPTransition`, :class:`MLPObservation`,
   :class:`GreyBoxTransition`, :class:`MLPDerivative`.
@@ -6,16 +6,17 @@
 * :mod:`~torch_nssm.blocks.continuous` -- :class:`ContinuousTimeTransition` (a transition from an
   ODE ``dx/dt = F(x, u)`` and a sample time), :class:`LinearContinuousTimeTransition`;
   :class:`MLPDerivative` (in :mod:`~torch_nssm.blocks.neural`) is a neural ``F``.
-* :mod:`~torch_nssm.blocks.warm_start` -- :func:`simulation_warm_start` (networks trained by
-  simulation error first), :func:`warm_start_estimator`, :func:`distill`, :class:`WarmStartInfo`.
+* :mod:`~torch_nssm.blocks.starts` -- :func:`simulation_start` (networks trained by
+  simulation error first), :func:`distilled_start`, :func:`distill`, :class:`DistilledStartInfo`.
 
-The public paths :mod:`torch_nssm.neural` and :mod:`torch_nssm.warm_start` re-export them.
+The public paths :mod:`torch_nssm.neural` and :mod:`torch_nssm.starts` re-export them.
 """
 
+from .._deprecation import module_getattr
 from .continuous import ContinuousTimeTransition, LinearContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
 from .neural import ACTIVATIONS, GreyBoxTransition, MLPDerivative, MLPObservation, MLPTransition
-from .warm_start import WarmStartInfo, distill, simulation_warm_start, warm_start_estimator
+from .starts import DistilledStartInfo, distill, distilled_start, simulation_start
 
 __all__ = [
     "MLPTransition",
@@ -27,8 +28,18 @@ __all__ = [
     "LinearContinuousTimeTransition",
     "LinearTransition",
     "LinearObservation",
-    "warm_start_estimator",
-    "simulation_warm_start",
+    "distilled_start",
+    "simulation_start",
     "distill",
-    "WarmStartInfo",
+    "DistilledStartInfo",
 ]
+
+#: the names of the starts before they were renamed, for one release
+__getattr__ = module_getattr(
+    __name__,
+    {
+        "warm_start_estimator": ("torch_nssm.blocks", "distilled_start"),
+        "simulation_warm_start": ("torch_nssm.blocks", "simulation_start"),
+        "WarmStartInfo": ("torch_nssm.blocks", "DistilledStartInfo"),
+    },
+)

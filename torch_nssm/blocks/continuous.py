@@ -232,7 +232,7 @@ class ContinuousTimeTransition(nn.Module):
 
     @torch.no_grad()
     def fit_normalisation(self, x, u=None, x_next=None) -> ContinuousTimeTransition:
-        """Set ``rhs``'s normalisation from states (e.g. a warm start's smoothed states): calls
+        """Set ``rhs``'s normalisation from states (e.g. ``distilled_start``'s smoothed states): calls
         ``rhs.fit_normalisation(x, u, dxdt=(x_next - x) / Ts)`` (the derivative's scale from the
         one-sample increments; ``x_next=None``: ``dxdt=None``).
 

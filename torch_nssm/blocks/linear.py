@@ -1,7 +1,7 @@
 """Linear ``f`` / ``g`` blocks, linear in their parameters (closed-form M-steps).
 
-:class:`LinearTransition` and :class:`LinearObservation` are the reference models of a warm
-start (:mod:`torch_nssm.blocks.warm_start`) and a fast first model of any system.
+:class:`LinearTransition` and :class:`LinearObservation` are the reference models of
+:func:`~torch_nssm.blocks.starts.distilled_start` and a fast first model of any system.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ def _affine(theta: Tensor, d: int, nx: int, nu: int, offset: bool) -> Callable[[
 
 
 class LinearTransition(LinearInParameters):
-    """Linear transition ``f(x, u) = A x + B u (+ c)``: the reference model of a warm start.
+    """Linear transition ``f(x, u) = A x + B u (+ c)``: the default reference model of ``distilled_start``.
 
     Linear in ``theta = (A, B[, c])``, so the EM engine updates it in closed form (fast).
 

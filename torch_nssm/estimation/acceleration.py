@@ -112,12 +112,12 @@ def _free(model: StateSpaceModel, excluded: list[str]) -> list[torch.Tensor]:
     ]
 
 
-def information_at(model: StateSpaceModel, data: SequenceBatch, est: EStepOutput, generator):
-    """:class:`InformationAt` ``model`` from its E-step ``est`` (``None``: nothing to accelerate)."""
+def information_at(model: StateSpaceModel, data: SequenceBatch, estep_out: EStepOutput, generator):
+    """:class:`InformationAt` ``model`` from its E-step ``estep_out`` (``None``: nothing to accelerate)."""
     unc = observed_information(
         model,
         data,
-        est,
+        estep_out,
         fit_Rw=False,
         fit_Rv=False,
         fit_shape=False,

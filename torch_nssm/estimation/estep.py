@@ -14,10 +14,10 @@ from .. import _workspace
 from .._ops import time_blocks
 from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import masked_scale
+from ..inference.ffbsm import SmootherOutput
 from ..inference.filtering import FilterOutput, particle_filter, sample_initial_state
 from ..inference.resampling import get_resampler
 from ..inference.smoothers import get_smoother
-from ..inference.smoothing import SmootherOutput
 from ..inference.windows import Windows, cut
 
 __all__ = [
@@ -152,8 +152,8 @@ def e_step(
     """
     _workspace.tune_allocator()
     if options.segment_length is not None and int(data.lengths.max()) > options.segment_length:
-        est = segmented_e_step(model, data, options, generator, previous)
-        return to_records(est, model, data) if records else est
+        estep_out = segmented_e_step(model, data, options, generator, previous)
+        return to_records(estep_out, model, data) if records else estep_out
     with _workspace.recycling(_arrays(recycle)):
         filt = _filter(model, data, options, generator)
         smooth = _smooth(model, data, filt, options, generator)
@@ -162,14 +162,14 @@ def e_step(
     return EStepOutput(filt, smooth, e_lam, e_log)
 
 
-def _arrays(est: EStepOutput | None) -> list:
+def _arrays(estep_out: EStepOutput | None) -> list:
     """The large arrays of an E-step output (for :func:`e_step`'s ``recycle``)."""
-    if est is None or est.windows is not None:
+    if estep_out is None or estep_out.windows is not None:
         return []
-    f, s = est.filter, est.smoother
+    f, s = estep_out.filter, estep_out.smoother
     return [  # (views, e.g. transition weights that are the weights' first steps, are skipped)
         f.particles, f.log_weights, f.ancestors,  # (f.noise_statistics: dropped, now e_log_lam)
-        s._log_weights, s.weights, s.next_mean, s.transition_weights, est.e_lam, est.e_log_lam,
+        s._log_weights, s.weights, s.next_mean, s.transition_weights, estep_out.e_lam, estep_out.e_log_lam,
     ]  # fmt: skip
 
 
@@ -264,14 +264,14 @@ def _predicted(model: StateSpaceModel, X: Tensor, logW: Tensor, u: Tensor, L: in
     return x + noise @ chol.transpose(-1, -2)
 
 
-def to_records(est: EStepOutput, model: StateSpaceModel, data: SequenceBatch) -> EStepOutput:
+def to_records(estep_out: EStepOutput, model: StateSpaceModel, data: SequenceBatch) -> EStepOutput:
     """A per-window E-step output (:func:`segmented_e_step`) as the records' ``(T, B, ...)``: each
     step from the window that owns it (the filter's ancestors across a window boundary index the
     owning window's particles).  Other outputs are returned as they are."""
-    windows = est.windows
+    windows = estep_out.windows
     if windows is None:
-        return est
-    filt, smooth = est.filter, est.smoother
+        return estep_out
+    filt, smooth = estep_out.filter, estep_out.smoother
     g = windows.gather
     steps = torch.where(data.step_mask, g(filt.log_likelihood_steps), 0.0)
     scale = masked_scale(model.noise.per_sequence("Rv", data.n_sequences).unsqueeze(0), data.obs_mask)
@@ -293,7 +293,7 @@ def to_records(est: EStepOutput, model: StateSpaceModel, data: SequenceBatch) ->
         torch.where(trans, g(smooth.transition_weights, transitions=True), 0.0),
         windows.to_records(smooth.residual_scatter),
     )
-    return EStepOutput(record_filter, record_smoother, g(est.e_lam), g(est.e_log_lam))
+    return EStepOutput(record_filter, record_smoother, g(estep_out.e_lam), g(estep_out.e_log_lam))
 
 
 def _smooth(model, data, filt, options: EStepOptions, generator) -> SmootherOutput:

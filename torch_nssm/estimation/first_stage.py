@@ -142,7 +142,7 @@ class FirstStageReport:
 
 
 #: Layers that mark a network: ``first_stage="auto"`` leaves models holding them to
-#: :func:`torch_nssm.warm_start_estimator` (a simulation-error fit of an untrained network from a
+#: :func:`torch_nssm.distilled_start` (a simulation-error fit of an untrained network from a
 #: random start is a training problem of its own, not a quick first stage).
 NETWORK_LAYERS: tuple[type, ...] = (
     torch.nn.Linear,

@@ -342,38 +342,38 @@ def _stack(values: list[Tensor], groups: _Groups) -> Tensor:
     return values[0] if groups.shared else torch.stack(values)
 
 
-def transition_regression(Rw: Tensor, data: SequenceBatch, est: EStepOutput) -> Regression:
+def transition_regression(Rw: Tensor, data: SequenceBatch, estep_out: EStepOutput) -> Regression:
     """The ``theta_f`` regression: ``(x_k^i, u_k) -> xbar_k^i``, weight ``s_k^i``, metric ``Rw^-1``
     (``Rw`` shared ``(nx, nx)`` or per sequence ``(B, nx, nx)``)."""
     B = data.n_sequences
     Rw = Rw.expand(B, *Rw.shape[-2:]) if Rw.dim() == 2 else Rw
-    sm = est.smoother
+    sm = estep_out.smoother
     Cw = inverse_cholesky(Rw).unsqueeze(0)  # (1, B, nx, nx)
-    X = est.filter.particles
+    X = estep_out.filter.particles
     return Regression(X[:-1], data.u[:-1], sm.next_mean, lambda sl: sm.transition_weights[sl], Cw)
 
 
-def smoothing_weights(data: SequenceBatch, est: EStepOutput) -> Callable[[slice], Tensor]:
+def smoothing_weights(data: SequenceBatch, estep_out: EStepOutput) -> Callable[[slice], Tensor]:
     """``W_{k|N}^l`` of the time block ``sl``, zero where nothing is observed
-    (:meth:`~torch_nssm.inference.smoothing.SmootherOutput.weights_of`: possibly a view, not to be
+    (:meth:`~torch_nssm.inference.ffbsm.SmootherOutput.weights_of`: possibly a view, not to be
     modified in place)."""
     observed = data.obs_mask.any(-1).unsqueeze(-1)  # (T, B, 1)
-    weights_of = est.smoother.weights_of
+    weights_of = estep_out.smoother.weights_of
     if bool(observed.all()):
         return weights_of
     return lambda sl: weights_of(sl) * observed[sl]
 
 
 def observation_regression(
-    data: SequenceBatch, est: EStepOutput, *, per_component: bool = False
+    data: SequenceBatch, estep_out: EStepOutput, *, per_component: bool = False
 ) -> Regression:
     """The ``theta_g`` regression: ``(x_k^l, u_k) -> y_k``, weight ``W_{k|N}^l`` times the latent
     scales, metric ``Rv^-1`` on the observed components.  ``per_component``: the noise family's
     (one latent scale per output component, which then weights the components of each row)."""
-    W = smoothing_weights(data, est)
-    scale = est.filter.scale
+    W = smoothing_weights(data, estep_out)
+    scale = estep_out.filter.scale
     y = scale.fill_missing(data.y).unsqueeze(2)  # (T, B, 1, p)
-    X, e_lam = est.filter.particles, est.e_lam
+    X, e_lam = estep_out.filter.particles, estep_out.e_lam
     if per_component:
         return Regression(X, data.u, y, W, scale.whitener(), lambda sl: e_lam[sl])
     return Regression(X, data.u, y, lambda sl: W(sl) * e_lam[sl], scale.whitener())
@@ -383,7 +383,7 @@ def observation_regression(
 def process_noise_update(
     f: list[nn.Module],
     regression: Regression,
-    est: EStepOutput,
+    estep_out: EStepOutput,
     data: SequenceBatch,
     *,
     shared: bool = True,
@@ -398,10 +398,10 @@ def process_noise_update(
     """
     groups = _Groups(shared, data.n_sequences)
     if scatter is not None:
-        S = groups.pool(est.smoother.residual_scatter)
+        S = groups.pool(estep_out.smoother.residual_scatter)
         S = S + scatter.reshape(S.shape)
     else:
-        S = est.smoother.residual_scatter.clone()  # (B, nx, nx)
+        S = estep_out.smoother.residual_scatter.clone()  # (B, nx, nx)
         predict = _evaluator(f, groups)
         for sl, r in _residuals(predict, regression):
             rw = r * regression.row_weight(sl).unsqueeze(-1)
@@ -413,34 +413,39 @@ def process_noise_update(
 
 @torch.no_grad()
 def noise_statistics(
-    noise: MeasurementNoise, g: list[nn.Module], data: SequenceBatch, est: EStepOutput, *, shared: bool = True
+    noise: MeasurementNoise,
+    g: list[nn.Module],
+    data: SequenceBatch,
+    estep_out: EStepOutput,
+    *,
+    shared: bool = True,
 ) -> dict[str, Tensor]:
     """The noise model's sufficient statistics at the current ``theta_g``, pooled per group."""
     groups = _Groups(shared, data.n_sequences)
-    scale = est.filter.scale
-    regression = observation_regression(data, est, per_component=noise.per_component)
-    W = smoothing_weights(data, est)
+    scale = estep_out.filter.scale
+    regression = observation_regression(data, estep_out, per_component=noise.per_component)
+    W = smoothing_weights(data, estep_out)
     predict = _evaluator(g, groups)
     stats: dict[str, Tensor] = {}
     for sl, r in _residuals(predict, regression, mask=scale.mask):
-        block = noise.statistics(r, W(sl), est.e_lam[sl], est.e_log_lam[sl], scale, sl)
+        block = noise.statistics(r, W(sl), estep_out.e_lam[sl], estep_out.e_log_lam[sl], scale, sl)
         for k, v in block.items():
             stats[k] = stats[k] + v if k in stats else v
     return {k: groups.pool(v) for k, v in stats.items()}
 
 
 @torch.no_grad()
-def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -> tuple[Tensor, Tensor]:
+def initial_state_update(estep_out: EStepOutput, Rw: Tensor, *, shared: bool = True) -> tuple[Tensor, Tensor]:
     """Prior of the first state from its smoothed distribution, pooled over each group's sequences.
 
     ``Rw`` is *added* to the smoothed covariance: with a single record the maximum-likelihood prior
     would otherwise collapse to a point over the iterations.
     """
-    sm = est.smoother
-    X0 = est.filter.particles[0]  # (B, L, nx)
+    sm = estep_out.smoother
+    X0 = estep_out.filter.particles[0]  # (B, L, nx)
     w0 = sm.weights_of(0)  # (B, L)
-    if est.windows is not None:  # windows of long records: those that start a record
-        X0, w0 = X0[est.windows.first], w0[est.windows.first]
+    if estep_out.windows is not None:  # windows of long records: those that start a record
+        X0, w0 = X0[estep_out.windows.first], w0[estep_out.windows.first]
     B = X0.shape[0]
     groups = _Groups(shared, B)
     w0 = w0.unsqueeze(-1)  # (B, L, 1)
@@ -454,7 +459,7 @@ def initial_state_update(est: EStepOutput, Rw: Tensor, *, shared: bool = True) -
 def m_step(
     models: list[StateSpaceModel],
     data: SequenceBatch,
-    est: EStepOutput,
+    estep_out: EStepOutput,
     options: MStepOptions,
     *,
     shared: bool = True,
@@ -468,7 +473,7 @@ def m_step(
         (``shared=True``), one per sequence for independent fits.  The modules are updated in
         place; a group whose update is refused gets its previous parameters back.
     data : SequenceBatch
-    est : EStepOutput
+    estep_out : EStepOutput
         The E-step of ``data`` at these models (stacked for independent fits).
     options : MStepOptions
 
@@ -484,7 +489,7 @@ def m_step(
     Rw_old = _stack([m.Rw for m in models], groups)
     noise_old = models[0].noise if shared else type(models[0].noise).stack([m.noise for m in models])
 
-    trans = transition_regression(Rw_old, data, est)
+    trans = transition_regression(Rw_old, data, estep_out)
     # Rw's scatter from the closed form's pass where it gives it reliably (one pass fewer)
     held = [SolverReport(math.nan, math.nan) for _ in models]
     if options.fit_modules:
@@ -493,19 +498,19 @@ def m_step(
         reports_f, scatter = held, None
     Rw = Rw_old
     if options.fit_Rw:
-        Rw = process_noise_update(fs, trans, est, data, shared=shared, scatter=scatter)
+        Rw = process_noise_update(fs, trans, estep_out, data, shared=shared, scatter=scatter)
 
-    regression = observation_regression(data, est, per_component=noise_old.per_component)
+    regression = observation_regression(data, estep_out, per_component=noise_old.per_component)
     reports_g = _update_modules(gs, regression, groups, options)[0] if options.fit_modules else held
     noise = noise_old.updated(
-        noise_statistics(noise_old, gs, data, est, shared=shared),
+        noise_statistics(noise_old, gs, data, estep_out, shared=shared),
         fit_Rv=options.fit_Rv,
         fit_shape=options.fit_shape,
     )
     if options.Rv_floor is not None and options.fit_Rv:
         noise = noise.floored(options.Rv_floor)
     if options.fit_x0:
-        x0_mean, x0_cov = initial_state_update(est, Rw, shared=shared)
+        x0_mean, x0_cov = initial_state_update(estep_out, Rw, shared=shared)
     else:
         x0_mean = _stack([m.x0_mean for m in models], groups)
         x0_cov = _stack([m.x0_cov for m in models], groups)

@@ -23,9 +23,10 @@ import torch
 from .. import _parallel
 from .._threads import limited_threads
 from ..core.model import SequenceBatch
+from ..inference import prediction
 from ..metrics import robust_r2_score
 from .loop import EMOptions, EMResult, run_em
-from .start import SimulationCheck, Start
+from .start import SimulationCheck, Start, check_simulation
 
 __all__ = [
     "EMRunner",
@@ -71,7 +72,7 @@ class EMRunner:
         Number of runs (the progress bar's "run r/n").
     device : torch.device
     fit_Rw : bool or None
-        Overrides the estimator's ``fit_Rw`` in every run (a warm start continues the fit's).
+        Overrides the estimator's ``fit_Rw`` in every run (``warm_start=True`` continues the fit's).
     hold_modules : bool
         EM keeps ``f``'s and ``g``'s parameters and the first state's prior (a simulation model's
         runs: those of the first stage).
@@ -131,6 +132,39 @@ def first_stage_fallback(runner: EMRunner, start: Start, data: SequenceBatch) ->
     only = dataclasses.replace(start, seeds=start.seeds[:1])
     result = runner.without_iterations()(only, data, 0, progress=False)[0]
     return result if result.error is None and result.estep is not None else None
+
+
+def best_run(runs: list[tuple], report: FitReport, fallback: Callable[[], EMResult | None] | None = None):
+    """The kept run of a fit: the one with the highest final log-likelihood among those without an
+    error; when every run failed on a numerical error after a kept first stage, the start evaluated
+    by ``fallback()`` (:func:`first_stage_fallback`; ``report.fallback`` then names the error);
+    ``None`` when no run finished and there is no such start.  Raises ``KeyboardInterrupt`` when
+    Ctrl-C came before anything was fitted."""
+    if runs[-1][0].interrupted and runs[-1][0].estep is None and len(runs) == 1:
+        raise KeyboardInterrupt  # nothing was fitted yet
+    good = report.good()
+    if good:
+        return runs[max(good, key=lambda i: report.outcomes[i].log_likelihood)][0]
+    kept = fallback() if fallback is not None and not runs[0][0].interrupted else None
+    if kept is not None:
+        report.fallback = report.outcomes[0].error
+    return kept
+
+
+def last_good_run(runs: list[tuple]) -> EMResult | None:
+    """Of runs that all failed, the one whose last good parameters have the highest log-likelihood
+    (``None``: no run has any)."""
+    candidates = [run for run, _ in runs if run.estep is not None]
+    return max(candidates, key=lambda run: run.log_likelihood) if candidates else None
+
+
+def kept_outputs(start: Start, best: EMResult, data: SequenceBatch, report: FitReport) -> torch.Tensor:
+    """The kept run's noise-free outputs ``(T, B, p)``; after a kept first stage, the comparison of
+    the two simulations goes in ``report.simulation``."""
+    outputs = prediction.free_run(best.model, data.u)[1]
+    if start.staged is not None:
+        report.simulation = check_simulation(start, best, outputs, data)
+    return outputs
 
 
 # --------------------------------------------------------------------------- the report

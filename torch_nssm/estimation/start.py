@@ -79,13 +79,14 @@ class StartSettings:
     n_iter : int
         ``first_stage="auto"`` runs no first stage without EM (``n_iter=0`` evaluates a model).
     n_runs : int
-        EM runs (``n_init``; 1 for a warm start).
+        EM runs (``n_init``; 1 for ``warm_start=True``).
     init_jitter : float
         Standard deviation of the restarts' log-normal factor.
     random_state : int, RandomState or None
         Seeds the runs (:func:`restart_seeds`).
     warm : bool
-        A warm start: no first stage, and no warning about the start's simulation.
+        ``warm_start=True`` on a fitted estimator: no first stage, and no warning about the start's
+        simulation.
     focus : {"simulation", "prediction"}
         What the model is for (:func:`plan_start`).
     fit_Rw : bool or "auto"

@@ -17,7 +17,7 @@ At any parameter value ``theta`` (docs/uncertainty.md)::
   otherwise.
 * The second term needs the *joint* smoothing distribution, but only over a lag window of a few
   steps: ``M`` draws of pieces of trajectories from the particle approximation
-  (:func:`~torch_nssm.inference.smoothing.backward_segments`), the complete-data score of each step
+  (:func:`~torch_nssm.inference.ffbsi.backward_segments`), the complete-data score of each step
   in closed form given the residuals, and their covariances summed up to the window
   (:func:`_windowed_covariance`).
 
@@ -45,7 +45,7 @@ from ..core.model import SequenceBatch, StateSpaceModel
 from ..core.noise import MeasurementNoise
 from ..core.parametric import LinearInParameters
 from ..core.scales import LOG_CHOLESKY, PLAIN, WorkingScale, cholesky_and_inverse, log_cholesky_scores
-from ..inference.smoothing import backward_segments
+from ..inference.ffbsi import backward_segments
 from .estep import EStepOutput
 from .mstep import ROW_WEIGHT_CUTOFF
 
@@ -199,15 +199,15 @@ class ParameterUncertainty:
             raise ValueError(f"level must lie in (0, 1), got {level!r}")
         z = NormalDist().inv_cdf(0.5 + level / 2)
         se = np.sqrt(np.diagonal(self.covariance))
-        est = self.estimate
-        lower, upper = est - z * se, est + z * se
-        log = np.zeros(len(est), dtype=bool)
+        value = self.estimate
+        lower, upper = value - z * se, value + z * se
+        log = np.zeros(len(value), dtype=bool)
         for _, positions, _, logs, _ in self.layout.values():
             log[positions] = logs
         with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.exp(z * se / est)
-        lower = np.where(log, est / r, lower)
-        upper = np.where(log, est * r, upper)
+            r = np.exp(z * se / value)
+        lower = np.where(log, value / r, lower)
+        upper = np.where(log, value * r, upper)
         lo, hi = self._unflatten(lower), self._unflatten(upper)
         return {k: (lo[k], hi[k]) for k in lo}
 
@@ -304,9 +304,9 @@ class _LogLikelihood:
         return self.noise_at(params).residual_log_prob(r, mask, all_observed)
 
 
-def _expected_rows(data: SequenceBatch, est: EStepOutput):
+def _expected_rows(data: SequenceBatch, estep_out: EStepOutput):
     """The M-step's weighted rows (transition and observation), above :data:`ROW_WEIGHT_CUTOFF`."""
-    X, sm = est.filter.particles, est.smoother
+    X, sm = estep_out.filter.particles, estep_out.smoother
     T, B, L, nx = X.shape
     # the kept rows' flat indices, found once (a boolean mask per tensor costs one search each),
     # and the per-step tensors indexed by the rows' steps instead of expanded to every particle
@@ -341,7 +341,7 @@ def _entry_layout(blocks) -> tuple[list, list, dict]:
 def observed_information(
     model: StateSpaceModel,
     data: SequenceBatch,
-    est: EStepOutput,
+    estep_out: EStepOutput,
     *,
     fit_Rw: bool = True,
     fit_Rv: bool = True,
@@ -356,7 +356,7 @@ def observed_information(
     model : StateSpaceModel
         One (unbatched) model, shared by the sequences of ``data``.
     data : SequenceBatch
-    est : EStepOutput
+    estep_out : EStepOutput
         The E-step of ``data`` at ``model`` (the fit's final E-step).
     fit_Rw, fit_Rv : bool
         Whether ``Rw`` and ``Rv`` were estimated (else they are held fixed).
@@ -373,12 +373,12 @@ def observed_information(
     """
     blocks, excluded = _blocks(model, fit_Rw, fit_Rv, fit_shape)
     ll = _LogLikelihood(model, blocks)
-    dtype = est.filter.particles.dtype
+    dtype = estep_out.filter.particles.dtype
     with torch.no_grad():
         w0 = torch.cat([b.to_working() for b in blocks]).to(dtype) if blocks else torch.zeros(0, dtype=dtype)
     d = w0.numel()
-    trans, obs = _expected_rows(data, est)
-    scatter = est.smoother.residual_scatter.sum(0)
+    trans, obs = _expected_rows(data, estep_out)
+    scatter = estep_out.smoother.residual_scatter.sum(0)
     n_trans = float(data.transition_mask.sum())
     all_observed = bool(data.obs_mask[data.obs_mask.any(-1)].all())
 
@@ -442,7 +442,7 @@ def observed_information(
     H = hessian.numpy()
     if d:
         V, lag, mean_score = _score_variance(
-            ll, w0, model, data, est, n_trajectories, all_observed, generator
+            ll, w0, model, data, estep_out, n_trajectories, all_observed, generator
         )
     else:
         V, lag, mean_score = np.zeros((0, 0)), 0, np.zeros(0)
@@ -510,7 +510,7 @@ _WINDOW_PATHS = 64
 #: Sokal's window constant: the lag window is the smallest ``K`` with ``K >= c * tau(K)``.
 _SOKAL_C = 5.0
 
-#: The trajectories are drawn as pieces (:func:`~torch_nssm.inference.smoothing.backward_segments`):
+#: The trajectories are drawn as pieces (:func:`~torch_nssm.inference.ffbsi.backward_segments`):
 #: each piece owns :data:`_PIECE_CORE` steps and runs :data:`_PIECE_MARGIN` steps past them, which
 #: must exceed the lag window (else the pieces are drawn again with a wider margin).
 _PIECE_MARGIN = 12
@@ -595,7 +595,7 @@ def _score_variance(
     w0: Tensor,
     model: StateSpaceModel,
     data: SequenceBatch,
-    est: EStepOutput,
+    estep_out: EStepOutput,
     n_trajectories: int,
     all_observed: bool,
     generator: torch.Generator | None,
@@ -610,15 +610,15 @@ def _score_variance(
     steps).  Where the window the scores call for does not fit in the margin, the pieces are drawn
     again with a margin of twice the window.
     """
-    X = est.filter.particles
+    X = estep_out.filter.particles
     T = X.shape[0]
     tries = int(min(53, max(_MIN_TRIES, X.shape[2] * _TRIES_PER_PARTICLE)))
     margin = _PIECE_MARGIN
     while True:
         starts, length, own = _pieces(T, margin, max(_PIECE_CORE, 3 * margin))
         Js = backward_segments(
-            model, data, est.filter, n_trajectories, starts, length,
-            log_weights=est.smoother.log_weights, max_tries=tries, generator=generator,
+            model, data, estep_out.filter, n_trajectories, starts, length,
+            log_weights=estep_out.smoother.log_weights, max_tries=tries, generator=generator,
         )
         G, n, B, M = Js.shape
         scores = _row_scores(ll, w0, _piece_rows(X, data, Js, starts), all_observed).view(G, n, B, M, -1)

@@ -18,7 +18,8 @@ of its batch, the number of chunks or workers, nor on when the others converge (
 * adaptive loops (rejection sampling) draw their whole budget up front.
 
 The per-sequence calls cost one ``torch.rand``/``randn`` call per sequence and site instead of
-one per site; benchmarks/README.md measures the overhead on the Table 1 workload.
+one per site; ``benchmarks/parallel.py --overhead`` measures it on the Table 1 workload
+(figures in ``benchmarks/HISTORY.md``).
 """
 
 from __future__ import annotations

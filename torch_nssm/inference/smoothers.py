@@ -2,7 +2,7 @@
 ``smoother(model, data, filt, **options) -> SmootherOutput``.
 
 A new smoother is a function in a file of its own (importing ``SmootherOutput`` from
-:mod:`torch_nssm.inference.smoothing`) plus one line here; its keyword-only options are reachable
+:mod:`torch_nssm.inference.ffbsm`) plus one line here; its keyword-only options are reachable
 from the estimator as ``smoother_options``.
 """
 
@@ -12,8 +12,9 @@ import inspect
 from typing import Callable
 
 from ..core.model import SequenceBatch, StateSpaceModel
+from .ffbsi import ffbsi
+from .ffbsm import SmootherOutput, ffbsm
 from .filtering import FilterOutput
-from .smoothing import SmootherOutput, ffbsi, ffbsm
 
 __all__ = ["SMOOTHERS", "get_smoother", "smoother_options"]
 

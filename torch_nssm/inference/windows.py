@@ -17,7 +17,7 @@ from torch import Tensor
 
 from .._ops import time_blocks
 from ..core.model import SequenceBatch
-from .smoothing import TINY_WEIGHT, SmootherOutput
+from .ffbsm import TINY_WEIGHT, SmootherOutput
 
 __all__ = ["Windows", "OwnedBatch", "cut"]
 
@@ -108,7 +108,7 @@ class Windows:
         """The parameter-free process-noise scatter (``SmootherOutput.residual_scatter``) summed
         over the transitions each window owns only, per window ``(W, nx, nx)``.
 
-        In the centred form of :func:`~torch_nssm.inference.smoothing.ffbsm` (nothing of size
+        In the centred form of :func:`~torch_nssm.inference.ffbsm.ffbsm` (nothing of size
         ``|c|^2`` cancels): ``sum_j w_j d_j d_j^T - sum_i s_i e_i e_i^T``, ``d = x_{k+1} - c``,
         ``e = xbar_k - c``, ``c`` the smoothed mean of ``x_{k+1}``.
         """

@@ -198,7 +198,7 @@ class NoiseSpec:
         return self.noise_model(**params, spec=self)
 
     def starting_at(self, noise: MeasurementNoise) -> NoiseSpec:
-        """This specification with its initial values at ``noise``'s (a warm start, the bootstrap)."""
+        """This specification with its initial values at ``noise``'s (``distilled_start``, the bootstrap)."""
         return self
 
     def initial_shortcuts(self) -> dict[str, Any]:

@@ -1,4 +1,5 @@
-"""Tests of the warm start and the linear blocks (:mod:`torch_nssm.blocks`)."""
+"""Tests of the starts of networks (distilled, simulation) and the linear blocks
+(:mod:`torch_nssm.blocks`)."""
 
 from __future__ import annotations
 
@@ -8,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from torch_nssm import RobustNSSMEstimator, warm_start_estimator
+from torch_nssm import RobustNSSMEstimator, distilled_start
 from torch_nssm.blocks.linear import LinearObservation, LinearTransition
 from torch_nssm.blocks.neural import GreyBoxTransition, MLPObservation, MLPTransition
-from torch_nssm.blocks.warm_start import WarmStartInfo, distill
+from torch_nssm.blocks.starts import DistilledStartInfo, distill
 from torch_nssm.datasets import make_paper_example
 from torch_nssm.models import PaperObservation, PaperTransition, true_model
 
@@ -157,8 +158,8 @@ def test_distill_errors():
         distill(MLPTransition(1, 1), ref, x, x, max_iter=0)
 
 
-# ---------------------------------------------------------------------- warm_start
-def test_warm_start_beats_cold_start(data):
+# ---------------------------------------------------------------------- distilled_start
+def test_distilled_start_beats_cold_start(data):
     """§4.1 data, 10 % outliers: 8 EM iterations of a residual MLP, warm versus cold.
 
     Measured (N = 300, L = 100, seeds 0): log-likelihood -290 warm vs -393 cold; free-run
@@ -166,8 +167,8 @@ def test_warm_start_beats_cold_start(data):
     """
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(_neural_estimator(8), data.u, data.y, return_info=True)
-        assert isinstance(info, WarmStartInfo)
+        warm, info = distilled_start(_neural_estimator(8), data.u, data.y, return_info=True)
+        assert isinstance(info, DistilledStartInfo)
         assert (info.f_action, info.g_action) == ("distilled", "fitted")
         assert info.f_error < 0.05  # the MLP imitates the fitted linear model
         est_warm = warm.fit(data.u, data.y)
@@ -186,11 +187,11 @@ def test_warm_start_beats_cold_start(data):
     assert c_warm > 0.9 * c_true
 
 
-def test_warm_start_sets_initial_values_and_leaves_estimator_alone(data):
+def test_distilled_start_sets_initial_values_and_leaves_estimator_alone(data):
     est = _neural_estimator(3)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(est, data.u, data.y, n_iter=5, n_jitter=1, return_info=True)
+        warm, info = distilled_start(est, data.u, data.y, n_iter=5, n_jitter=1, return_info=True)
     ref = info.reference
     np.testing.assert_allclose(warm.Rw_init, ref.Rw_)
     np.testing.assert_allclose(warm.Rv_init, ref.Rv_)
@@ -215,7 +216,7 @@ def test_warm_start_sets_initial_values_and_leaves_estimator_alone(data):
     assert warm.g is not est.g and warm.g.c.item() == pytest.approx(ref.g_.c.item())
 
 
-def test_warm_start_greybox_takes_physical_parameters(data):
+def test_distilled_start_greybox_takes_physical_parameters(data):
     physical = PaperTransition(a=0.5, b=0.5)
     est = RobustNSSMEstimator(
         GreyBoxTransition(physical, 1, 1, hidden=(8,), random_state=0),
@@ -227,7 +228,7 @@ def test_warm_start_greybox_takes_physical_parameters(data):
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(est, data.u, data.y, n_iter=10, return_info=True)
+        warm, info = distilled_start(est, data.u, data.y, n_iter=10, return_info=True)
     assert info.f_action == "physical" and info.f_error is None
     a, b = warm.f.physical.a.item(), warm.f.physical.b.item()
     assert a == pytest.approx(info.reference.f_.a.item())
@@ -239,7 +240,7 @@ def test_warm_start_greybox_takes_physical_parameters(data):
     assert physical.a.item() == 0.5  # the user's physical module is not changed
 
 
-def test_warm_start_mlp_observation(data):
+def test_distilled_start_mlp_observation(data):
     """An MLP observation gets a linear reference and imitates it; its output scale is set."""
     est = RobustNSSMEstimator(
         PaperTransition(0.5, 0.5),
@@ -251,7 +252,7 @@ def test_warm_start_mlp_observation(data):
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        warm, info = warm_start_estimator(est, data.u, data.y, n_iter=3, return_info=True)
+        warm, info = distilled_start(est, data.u, data.y, n_iter=3, return_info=True)
     assert (info.f_action, info.g_action) == ("fitted", "distilled")
     assert isinstance(info.reference.g, LinearObservation)
     assert info.g_error < 0.05
@@ -261,29 +262,29 @@ def test_warm_start_mlp_observation(data):
     )
 
 
-def test_warm_start_errors(data):
+def test_distilled_start_errors(data):
     est = _neural_estimator(1)
     with pytest.raises(TypeError, match="estimator must be a RobustNSSMEstimator"):
-        warm_start_estimator("not an estimator", data.u, data.y)
+        distilled_start("not an estimator", data.u, data.y)
     with pytest.raises(TypeError, match="reference_f"):
-        warm_start_estimator(est, data.u, data.y, reference_f=lambda x, u: x)
+        distilled_start(est, data.u, data.y, reference_f=lambda x, u: x)
     with pytest.raises(ValueError, match="n_iter"):
-        warm_start_estimator(est, data.u, data.y, n_iter=0)
+        distilled_start(est, data.u, data.y, n_iter=0)
     with pytest.raises(ValueError, match="noise"):
-        warm_start_estimator(est, data.u, data.y, noise="cauchy")
+        distilled_start(est, data.u, data.y, noise="cauchy")
     with pytest.raises(ValueError, match="n_jitter"):
-        warm_start_estimator(est, data.u, data.y, n_jitter=-1)
+        distilled_start(est, data.u, data.y, n_jitter=-1)
     with pytest.raises(ValueError, match="x0_mean"):
-        warm_start_estimator(est.set_params(x0_mean=None), data.u, data.y)
+        distilled_start(est.set_params(x0_mean=None), data.u, data.y)
     with pytest.raises(ValueError, match="same number of records"):
-        warm_start_estimator(_neural_estimator(1), [data.u, data.u], [data.y])
+        distilled_start(_neural_estimator(1), [data.u, data.u], [data.y])
 
 
 def test_linear_blocks_forward_equals_features_times_theta():
     """LinearTransition/LinearObservation evaluate x A^T + u B^T (+ c) directly (the filter calls them
     at every step); that is the function features() @ theta that the closed-form M-step fits."""
     from torch_nssm.core.parametric import LinearInParameters
-    from torch_nssm.warm_start import LinearObservation, LinearTransition
+    from torch_nssm.starts import LinearObservation, LinearTransition
 
     gen = torch.Generator().manual_seed(0)
     modules = [
@@ -301,7 +302,7 @@ def test_linear_blocks_forward_equals_features_times_theta():
             torch.testing.assert_close(m(x, u), LinearInParameters.forward(m, x, u), rtol=1e-12, atol=1e-12)
 
 
-# ---------------------------------------------------------------------- simulation_warm_start
+# ---------------------------------------------------------------------- simulation_start
 class _Position(torch.nn.Module):
     """``y = x`` (no parameters)."""
 
@@ -324,7 +325,7 @@ def _tanh_plant(n: int, seed: int, outliers: float = 0.0):
 
 
 def test_simulation_warm_start_then_em_beats_the_linear_reference():
-    from torch_nssm import simulation_warm_start
+    from torch_nssm import simulation_start
     from torch_nssm.estimation.neural_first_stage import NeuralFirstStageOptions
 
     u, y, _ = _tanh_plant(300, 0, outliers=0.05)
@@ -335,7 +336,7 @@ def test_simulation_warm_start_then_em_beats_the_linear_reference():
     options = NeuralFirstStageOptions(horizon=20, max_horizon=40, max_iter=60, eval_every=20)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # 300 samples for 33 parameters: said, and meant here
-        warm, report = simulation_warm_start(est, u, y, options=options, return_report=True)
+        warm, report = simulation_start(est, u, y, options=options, return_report=True)
     assert isinstance(warm, RobustNSSMEstimator) and warm is not est and not hasattr(warm, "f_")
     assert report.accepted and warm.first_stage is None
     assert not torch.equal(warm.f.net[-1].weight, est.f.net[-1].weight)  # trained; est is untouched
@@ -355,21 +356,21 @@ def test_simulation_warm_start_then_em_beats_the_linear_reference():
 
 
 def test_simulation_warm_start_checks_its_arguments():
-    from torch_nssm import simulation_warm_start
+    from torch_nssm import simulation_start
 
     u, y, _ = _tanh_plant(100, 0)
     with pytest.raises(TypeError, match="estimator"):
-        simulation_warm_start("not an estimator", u, y)
+        simulation_start("not an estimator", u, y)
     est = RobustNSSMEstimator(MLPTransition(1, 1, hidden=(4,)), _Position(), x0_mean=[0.0])
     with pytest.raises(TypeError, match="options"):
-        simulation_warm_start(est, u, y, options={"horizon": 10})
+        simulation_start(est, u, y, options={"horizon": 10})
     with pytest.raises(ValueError, match="x0_mean"):
-        simulation_warm_start(RobustNSSMEstimator(MLPTransition(1, 1), _Position()), u, y)
+        simulation_start(RobustNSSMEstimator(MLPTransition(1, 1), _Position()), u, y)
 
 
 def test_first_stage_auto_trains_a_network_by_simulation_error():
     """One first stage for networks: ``first_stage="auto"`` runs inside ``fit`` the stage that
-    ``simulation_warm_start`` runs outside it, and the start policy treats it as a physical one."""
+    ``simulation_start`` runs outside it, and the start policy treats it as a physical one."""
     from sklearn.base import clone
 
     from torch_nssm.estimation.neural_first_stage import NeuralFirstStageReport
