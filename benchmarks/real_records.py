@@ -351,8 +351,8 @@ def markdown_table(rows: list[dict]) -> str:
             ours_cell += " budget"
         flagged = "-"
         if "low_weight_share" in ours:
-            share = f"{100 * ours['low_weight_share']:.1f} %"
-            flagged = f"({share})"
+            share = ours.get("false_flag_share", ours["low_weight_share"])  # rows from before outliers_
+            flagged = f"({100 * share:.1f} %)"
             if ours["n_outliers"]:
                 flagged = f"{ours['flagged_outliers']}/{ours['n_outliers']} {flagged}"
         true_cell = "-" if sb else _g(r["true_model"]["rmse"])

@@ -18,7 +18,8 @@ from .metrics import fit_percent
 
 __all__ = ["CompareResult", "compare", "OUTLIER_WEIGHT_THRESHOLD"]
 
-#: ``robust=True`` leaves out the samples whose smoothed outlier weight is below this value.
+#: ``robust=True`` leaves out the samples whose smoothed outlier weight is below this value where
+#: the estimator has no ``outlier_threshold_`` of its own (the noise family's flagging weight).
 OUTLIER_WEIGHT_THRESHOLD = 0.5
 
 
@@ -36,7 +37,8 @@ class CompareResult:
     horizon : int or None
         ``None``: the free-run simulation; ``k``: ``k``-step-ahead predictions.
     robust : str
-        Which samples were left out: ``"none"`` or ``"smoothed outlier weight < 0.5"``.
+        Which samples were left out: ``"none"`` or e.g. ``"smoothed outlier weight < 0.38"`` (the
+        estimator's ``outlier_threshold_``).
     excluded : ndarray or list of ndarray, or None
         With ``robust=True``: boolean, shaped like ``y``, True where a sample was left out.
     """
@@ -100,8 +102,9 @@ def compare(estimator, u, y, *, horizon: int | None = None, x0=None, robust: boo
         ``"estimate"``: from the record's first outputs).
     robust : bool, default=False
         Leave out of the fit the samples whose outlier weight ``E[lam_k | y]`` from
-        ``estimator.smooth(u, y)`` on this record is below :data:`OUTLIER_WEIGHT_THRESHOLD` (0.5):
-        the glitches the model flags.  With Gaussian noise no sample has a weight below 1.
+        ``estimator.smooth(u, y)`` on this record is below the estimator's ``outlier_threshold_``
+        (its flagging rule, as ``outliers_``; :data:`OUTLIER_WEIGHT_THRESHOLD` without one): the
+        glitches the model flags.  With Gaussian noise no sample has a weight below 1.
     random_state : int, optional
         Seed of the particle filter and smoother (default: the estimator's).
 
@@ -129,13 +132,15 @@ def compare(estimator, u, y, *, horizon: int | None = None, x0=None, robust: boo
         sm = estimator.smooth(u, y, x0=x0, random_state=random_state)
         sm = sm if isinstance(sm, (list, tuple)) else [sm]
         excluded, used = [], []
+        threshold = getattr(estimator, "outlier_threshold_", OUTLIER_WEIGHT_THRESHOLD)
+        threshold = np.asarray(threshold, dtype=float)
         for yr, s in zip(ys, sm):
             w = np.asarray(s.outlier_weights, dtype=float)
             w = w[:, None] if w.ndim == 1 else w  # (N, 1) shared, or (N, p) per output
-            out = np.isfinite(yr) & (w < OUTLIER_WEIGHT_THRESHOLD)
+            out = np.isfinite(yr) & (w < threshold)
             excluded.append(out)
             used.append(np.where(out, np.nan, yr))
-        label = f"smoothed outlier weight < {OUTLIER_WEIGHT_THRESHOLD:g}"
+        label = "smoothed outlier weight < " + ", ".join(f"{v:.2g}" for v in threshold.reshape(-1))
     fits = np.stack([fit_percent(yr, pr) for yr, pr in zip(used, preds)])
     shapes = [np.shape(r) for r in (y if multi else [y])]
     if excluded is not None:

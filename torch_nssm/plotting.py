@@ -292,13 +292,17 @@ def plot_parameters(est, params=None, level: float = 0.95, intervals=None, true_
     return np.asarray(axes, dtype=object)
 
 
-def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYlGn", t=None):
+def plot_outliers(
+    y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYlGn", t=None, threshold: float = 0.5
+):
     """The outputs over time, coloured by their outlier weight ``E[lam_k | y]``.
 
-    A weight below 0.5 (red with the default colormap) flags an outlier, above it (green) a regular
-    sample.  A regular sample's weight is about 1 and exceeds 1 when its residual is small (up to
-    ``(dof + p) / dof`` for a sample on its prediction, e.g. 2 at ``dof = 1``): the colour bar
-    runs from 0 to the largest weight (at least 1), yellow at 0.5.  Missing weights (NaN) are grey.
+    A weight below ``threshold`` (red with the default colormap) flags an outlier, above it (green)
+    a regular sample; pass ``est.outlier_threshold_`` to colour by the estimator's flags
+    (``est.outliers_``).  A regular sample's weight is about 1 and exceeds 1 when its residual is
+    small (up to ``(dof + p) / dof`` for a sample on its prediction, e.g. 2 at ``dof = 1``): the
+    colour bar runs from 0 to the largest weight (at least 1), yellow at ``threshold``.  Missing
+    weights (NaN) are grey.
 
     Parameters
     ----------
@@ -313,11 +317,16 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
     cmap : str or Colormap, default="RdYlGn"
     t : array-like of shape (N,), optional
         Time axis (default: the sample index).
+    threshold : float, default=0.5
+        The flagging weight, in ``(0, 1)``.
 
     Returns
     -------
     Axes
     """
+    threshold = float(np.min(threshold))
+    if not 0.0 < threshold < 1.0:
+        raise ValueError(f"threshold must lie in (0, 1), got {threshold!r}")
     y = np.asarray(y, dtype=float)
     y = y.reshape(len(y), -1) if y.ndim <= 2 else None
     if y is None:
@@ -336,7 +345,7 @@ def plot_outliers(y, outlier_weights, true_outliers=None, ax=None, *, cmap="RdYl
 
     ok = np.isfinite(w)
     top = max(1.0, float(w[ok].max())) if ok.any() else 1.0
-    norm = TwoSlopeNorm(vmin=0.0, vcenter=0.5, vmax=top)  # 0.5: the flagging threshold
+    norm = TwoSlopeNorm(vmin=0.0, vcenter=threshold, vmax=top)
     scatter = None
     for j in range(y.shape[1]):
         ax.plot(t, y[:, j], color="0.8", linewidth=0.8, zorder=1)

@@ -363,6 +363,7 @@ def estimator_summary(est: RobustNSSMEstimator, outlier_mask: np.ndarray) -> dic
     """What a fitted estimator says about itself (the columns of the suite's table)."""
     w = np.asarray(est.outlier_weights_, dtype=float).reshape(len(outlier_mask), -1).min(axis=-1)
     low = w < 0.5
+    flagged = np.asarray(est.outliers_).reshape(len(outlier_mask), -1).any(axis=-1)
     n_out = int(np.sum(outlier_mask))
     fs = getattr(est, "first_stage_", None)
     history = est.history_
@@ -378,7 +379,10 @@ def estimator_summary(est: RobustNSSMEstimator, outlier_mask: np.ndarray) -> dic
         "fit_Rw": bool(getattr(est, "fit_Rw_", est.fit_Rw)),
         "x0_mean": np.asarray(est.x0_mean_).tolist(),
         "low_weight_share": float(np.mean(low)),
-        "flagged_outliers": int(np.sum(low & outlier_mask)),
+        "flagged_share": float(np.mean(flagged)),
+        "false_flag_share": float(np.mean(flagged[~outlier_mask])) if (~outlier_mask).any() else 0.0,
+        "flagged_outliers": int(np.sum(flagged & outlier_mask)),
+        "low_weight_outliers": int(np.sum(low & outlier_mask)),
         "n_outliers": n_out,
         "rejected_msteps": rejected,
         "log_likelihood": float(est.log_likelihood_),

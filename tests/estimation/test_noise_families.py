@@ -150,3 +150,30 @@ def test_joint_vs_per_output_long_run():
     assert abs(per.Rv_[1, 1] - RV_TRUE) < 0.03 and per.dof_[1] > 10.0
     assert (per.outlier_weights_[~glitch, 1] < 0.5).sum() <= 3
     assert (joint.outlier_weights_[~glitch] < 0.5).sum() >= 25
+
+
+def test_outlier_flags_follow_the_gaussian_core(record, joint, per_output):
+    """``outliers_`` flags a weight below ``(dof + p) / (dof + chi2_p(0.999))``: the weight of a
+    residual that the noise's Gaussian core exceeds once in a thousand samples (joint: one
+    threshold for both outputs; per output: one per output, each with p = 1)."""
+    _, _, glitch = record
+    nu = joint.dof_
+    assert joint.outlier_threshold_ == pytest.approx((nu + 2) / (nu + stats.chi2.ppf(0.999, 2)), rel=1e-12)
+    np.testing.assert_array_equal(joint.outliers_, joint.outlier_weights_ < joint.outlier_threshold_)
+    assert per_output.outlier_threshold_.shape == (2,)
+    np.testing.assert_allclose(
+        per_output.outlier_threshold_, (per_output.dof_ + 1) / (per_output.dof_ + stats.chi2.ppf(0.999, 1)),
+        rtol=1e-12,
+    )
+    np.testing.assert_array_equal(
+        per_output.outliers_, per_output.outlier_weights_ < per_output.outlier_threshold_[None, :]
+    )
+    # the glitches of output 1 are flagged there, output 2 (clean) keeps its samples
+    assert per_output.outliers_[glitch, 0].mean() > 0.5
+    assert per_output.outliers_[~glitch, 1].mean() < 0.02
+
+
+def test_gaussian_noise_flags_nothing(record):
+    u, y, _ = record
+    est = estimator("gaussian", n_iter=3).fit(u, y)
+    assert not est.outliers_.any() and est.outlier_threshold_ == 0.5

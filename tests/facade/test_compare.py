@@ -78,7 +78,8 @@ def test_robust_compare_leaves_out_the_outliers(fitted):
     plain = est.compare(data.u, data.y, random_state=0)
     robust = est.compare(data.u, data.y, robust=True, random_state=0)
     left_out = robust.excluded.reshape(-1)
-    assert robust.robust == "smoothed outlier weight < 0.5"
+    assert robust.robust == f"smoothed outlier weight < {float(est.outlier_threshold_):.2g}"
+    assert 0.0 < est.outlier_threshold_ < 0.5  # dof 1.4: a weight below 0.5 is a residual of 1.8 scales
     # the left-out samples are mostly the glitches: 80 % of the injected outliers (the rest are as
     # small as the noise) and 10 % of the regular samples (the fitted Student-t has dof 1.4)
     assert left_out[data.outlier_mask].mean() >= 0.6

@@ -206,6 +206,25 @@ class NoiseSpec:
         return {}
 
 
+#: Tail probability of the Student-t families' Gaussian core beyond which a sample is flagged as an
+#: outlier (:meth:`MeasurementNoise.outlier_threshold`).
+OUTLIER_LEVEL = 1e-3
+
+
+def core_outlier_threshold(dof, p: int) -> np.ndarray:
+    """The weight ``E[lam | y] = (dof + p) / (dof + delta2)`` of a residual at the ``1 - OUTLIER_LEVEL``
+    quantile of the Gaussian core's squared distance (``chi2_p``): a sample weighted below it lies
+    further out than the core puts one sample in a thousand.  With ``dof`` near 1 a weight below 0.5
+    is a residual of only 1.7 scales (a third of a Cauchy's samples); this threshold is about 0.17
+    there, 0.38 at ``dof = 5`` and tends to 1 with the Gaussian limit (where every weight is 1)."""
+    from scipy.stats import chi2  # scipy.stats costs a quarter of a second to import
+
+    nu = np.asarray(dof, dtype=float)
+    c = float(chi2.ppf(1.0 - OUTLIER_LEVEL, p))
+    with np.errstate(invalid="ignore"):
+        return np.where(np.isinf(nu), 1.0, (nu + p) / (nu + c))
+
+
 #: More than this share of the samples with an outlier weight below 0.5 is reported after a fit:
 #: the noise model may be absorbing model error (genuinely Cauchy noise down-weights about a third).
 DOWNWEIGHTED_SHARE = 0.4
@@ -370,6 +389,12 @@ class MeasurementNoise:
             name: float(v) if v.dim() == 0 else v.detach().cpu().numpy()
             for name, v in self.parameters().items()
         }
+
+    def outlier_threshold(self) -> np.ndarray:
+        """The outlier weight below which a sample (an output's sample, for a family with one
+        latent scale per output: one threshold per output) is flagged as an outlier: 0.5 unless the
+        family says otherwise (the Student-t families: :func:`core_outlier_threshold`)."""
+        return np.asarray(0.5)
 
     def absorption_message(self, weights) -> str | None:
         """Words for a fit whose noise model explains too much of the data (``None`` if it does

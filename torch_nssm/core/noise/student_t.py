@@ -24,6 +24,7 @@ from .base import (
     MaskedScale,
     NoiseSpec,
     absorbed_in_runs,
+    core_outlier_threshold,
     downweighted_share,
     masked_scale,
     random_source,
@@ -304,6 +305,9 @@ class StudentTNoise(JointScaleNoise):
 
     def absorption_message(self, weights) -> str | None:
         return absorbing_message(self.attributes()["dof"], weights)
+
+    def outlier_threshold(self) -> np.ndarray:
+        return core_outlier_threshold(self.attributes()["dof"], self.n_outputs)
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _StudentTEvaluator:
         dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B)

@@ -19,7 +19,15 @@ from torch import Tensor
 
 from ... import _validation as V
 from ..scales import LOG, LOG_DIAGONAL
-from .base import MaskedScale, MeasurementNoise, NoiseEvaluator, NoiseSpec, random_source, step_views
+from .base import (
+    MaskedScale,
+    MeasurementNoise,
+    NoiseEvaluator,
+    NoiseSpec,
+    core_outlier_threshold,
+    random_source,
+    step_views,
+)
 from .student_t import (
     absorbing_message,
     check_bounds,
@@ -154,6 +162,9 @@ class StudentTPerOutputNoise(MeasurementNoise):
 
     def absorption_message(self, weights) -> str | None:
         return absorbing_message(self.attributes()["dof"], weights)
+
+    def outlier_threshold(self) -> np.ndarray:
+        return core_outlier_threshold(self.attributes()["dof"], 1)  # one per output
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _PerOutputEvaluator:
         dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B, p)
