@@ -377,13 +377,40 @@ def observed_information(
     with torch.no_grad():
         w0 = torch.cat([b.to_working() for b in blocks]).to(dtype) if blocks else torch.zeros(0, dtype=dtype)
     d = w0.numel()
+    all_observed = bool(data.obs_mask[data.obs_mask.any(-1)].all())
+    H = _q_hessian(_q_parts(ll, model, data, estep_out, w0, all_observed), blocks, w0).numpy()
+
+    # the variance of the complete-data score, from pieces of backward-simulated trajectories
+    if d:
+        V, lag, mean_score = _score_variance(
+            ll, w0, model, data, estep_out, n_trajectories, all_observed, generator
+        )
+    else:
+        V, lag, mean_score = np.zeros((0, 0)), 0, np.zeros(0)
+    M = int(n_trajectories)
+    info = -H - V
+    info = 0.5 * (info + info.T)
+    estimate, cov, J = _natural_covariance(ll, blocks, w0, _inverse(info))
+    names, working, layout = _entry_layout(blocks)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        missing = np.diagonal(V) / np.diagonal(-H)
+    return ParameterUncertainty(
+        names, working, estimate, cov, info, -H, V, missing, mean_score, M, lag, excluded, J, layout
+    )
+
+
+def _q_parts(
+    ll: _LogLikelihood, model: StateSpaceModel, data: SequenceBatch, estep_out: EStepOutput, w0: Tensor,
+    all_observed: bool,
+) -> dict:
+    """``Q(w)``, the M-step's expected complete-data log-likelihood, in its two independent parts:
+    ``{"transition": ..., "observation": ...}`` (``f``, ``Rw``; ``g``, the noise's), each a function
+    of the working parameters ``w`` or, for an elliptical noise family and a ``g`` linear in its
+    parameters, the observation part's Hessian at ``w0`` in closed form (a tensor ``(d, d)``)."""
     trans, obs = _expected_rows(data, estep_out)
     scatter = estep_out.smoother.residual_scatter.sum(0)
     n_trans = float(data.transition_mask.sum())
-    all_observed = bool(data.obs_mask[data.obs_mask.any(-1)].all())
 
-    # Q(w), the M-step's expected complete-data log-likelihood, in its two independent parts:
-    # the transition (f, Rw) and the observation (g, the noise's); the Hessian is block diagonal
     def transition_part(w: Tensor) -> Tensor:
         params = ll.unpack(w)
         x, u, xbar, s = trans
@@ -412,46 +439,49 @@ def observed_information(
     def observation_moments(w: Tensor) -> Tensor:
         return _gaussian_term(moments["observation"], w, ll.unpack(w).get("Rv", model.noise.Rv), None, n_obs)
 
-    t_hessian = None
+    parts = {
+        "transition": transition_part if moments["transition"] is None else transition_moments,
+        "observation": observation_part if moments["observation"] is None else observation_moments,
+    }
     if moments["observation"] is None and model.noise.elliptical and all_observed:
         if _linear_in_parameters(model.g) or not _module_columns(ll, "g")[0]:
             try:
-                t_hessian = _elliptical_observation_hessian(ll, w0, obs)
-            except _NotLinear:  # its forward is not offset + Phi theta: autograd below
-                pass
+                hessian = _elliptical_observation_hessian(ll, w0, obs)
+            except _NotLinear:  # its forward is not offset + Phi theta: autograd (_q_hessian)
+                hessian = None
+            if hessian is not None:
+                parts["observation"] = hessian
+    return parts
 
-    hessian = torch.zeros(d, d, dtype=dtype)
+
+def _q_hessian(parts: dict, blocks: list, w0: Tensor) -> Tensor:
+    """The Hessian of ``Q`` at ``w0`` ``(d, d)`` on the CPU, block diagonal in the parts of
+    :func:`_q_parts`: each part's block in closed form where it has one, else by autograd over the
+    part's own parameters."""
+    d = w0.numel()
+    hessian = torch.zeros(d, d, dtype=w0.dtype)
     owner = np.concatenate([[b.key.startswith("f.") or b.key == "Rw"] * b.n_working for b in blocks] or [[]])
     for name, mine in (("transition", owner.astype(bool)), ("observation", ~owner.astype(bool))):
         idx = torch.as_tensor(np.flatnonzero(mine), dtype=torch.long)
-        if idx.numel() and name == "observation" and t_hessian is not None:
-            hessian[idx.unsqueeze(-1), idx] = t_hessian[idx.unsqueeze(-1), idx].detach().cpu()
+        part = parts[name]
+        if idx.numel() and isinstance(part, Tensor):
+            hessian[idx.unsqueeze(-1), idx] = part[idx.unsqueeze(-1), idx].detach().cpu()
         elif idx.numel():
-            if moments[name] is not None:
-                part = transition_moments if name == "transition" else observation_moments
-            else:
-                part = transition_part if name == "transition" else observation_part
 
             def restricted(v: Tensor, part=part, idx=idx) -> Tensor:
                 return part(w0.index_put((idx,), v))
 
             h = torch.autograd.functional.hessian(restricted, w0[idx], vectorize=True)
             hessian[idx.unsqueeze(-1), idx] = h.detach().cpu()
+    return hessian
 
-    # the variance of the complete-data score, from pieces of backward-simulated trajectories
-    H = hessian.numpy()
-    if d:
-        V, lag, mean_score = _score_variance(
-            ll, w0, model, data, estep_out, n_trajectories, all_observed, generator
-        )
-    else:
-        V, lag, mean_score = np.zeros((0, 0)), 0, np.zeros(0)
-    M = int(n_trajectories)
-    info = -H - V
-    info = 0.5 * (info + info.T)
-    cov_w = _inverse(info)
 
-    # delta method to the natural entries
+def _natural_covariance(ll: _LogLikelihood, blocks: list, w0: Tensor, cov_w: np.ndarray) -> tuple:
+    """The delta method from the working covariance ``cov_w`` to the natural entries: their
+    estimate, covariance (NaN rows and columns for the entries an undetermined working direction
+    touches) and the Jacobian ``J`` of the map."""
+    d = w0.numel()
+
     def natural(w: Tensor) -> Tensor:
         params = ll.unpack(w)
         return torch.cat([b.natural_entries(params[b.key]) for b in blocks]) if blocks else w
@@ -468,14 +498,7 @@ def observed_information(
         cov[:, touched] = np.nan
     with torch.no_grad():
         estimate = natural(w0).cpu().numpy()
-
-    names, working, layout = _entry_layout(blocks)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        missing = np.diagonal(V) / np.diagonal(-H)
-    return ParameterUncertainty(
-        names, working, estimate, cov, info, -H, V, missing, mean_score, M, lag, excluded, J, layout
-    )
-
+    return estimate, cov, J
 
 #: Eigenvalues of the information below this fraction of the largest count as zero.
 _RANK_TOLERANCE = 1e-10

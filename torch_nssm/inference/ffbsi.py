@@ -205,57 +205,23 @@ def _mcmc_block(
     proposals).  Either way each move leaves the backward kernel of the filter's particle
     approximation invariant, and a proposal costs a uniform and a lookup, not an inverse-CDF draw.
 
-    Everything that does not depend on the trajectories is made for the whole block before its
-    loop: the proposals, their whitened predictions ``z_f`` (``cand``), the thresholds and, for
-    every particle ``j`` at ``k + 1``, the squared distance ``d0_j`` to its genealogical parent's
-    prediction, so that a trajectory's start is one lookup.  Per step: three lookups by the
-    trajectories' indices at ``k + 1`` (``z_x``, the parent, ``d0``) and the test.  ``draws``
-    (per-sequence streams): the block's uniforms ``(B, t, 2 S M)`` in reverse time (row ``j``:
-    step ``blk.stop - 1 - j``), each row's ``S M`` proposal uniforms then ``S M`` acceptance
-    uniforms; padded rows restart at ``J_last``.  Without streams they are drawn from
-    ``generator`` in time order.
+    Everything that does not depend on the trajectories is made for the whole block before its loop
+    (:func:`_block_uniforms`, :func:`_block_lookups`): the proposals, their whitened predictions
+    ``z_f`` (``cand``), the thresholds and, for every particle ``j`` at ``k + 1``, the squared
+    distance ``d0_j`` to its genealogical parent's prediction, so that a trajectory's start is one
+    lookup. Per step: three lookups by the trajectories' indices at ``k + 1`` (``z_x``, the parent,
+    ``d0``) and the test. ``draws`` (per-sequence streams): the block's uniforms ``(B, t, 2 S M)``
+    in reverse time (row ``j``: step ``blk.stop - 1 - j``), each row's ``S M`` proposal uniforms
+    then ``S M`` acceptance uniforms; padded rows restart at ``J_last``. Without streams they are
+    drawn from ``generator`` in time order.
     """
     t = blk.stop - blk.start
     B, L, nx = zf.shape[1:]
     M = Js.shape[-1]
-    n = steps * M
-    dtype, device = zf.dtype, zf.device
     A_next = ancestors[blk.start + 1 : blk.stop + 1]  # (t, B, L): parents of the particles at k + 1
-    if draws is None:
-        pick = torch.randint(L, (t, B, n), device=device, generator=generator)
-        u = torch.rand(t, B, steps, M, dtype=_UNIFORM_DTYPE, device=device, generator=generator)
-    else:  # from the draws' layout (B, t, ...) in reversed time to time-major (t, B, ...)
-        d = draws.view(B, t, 2, n)
-        pick = d[:, :, 0].mul(L).long().clamp_(max=L - 1).transpose(0, 1).flip(0)
-        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).flip(0)
-    props = torch.gather(A_next, 2, pick)  # (t, B, S M)
-    thr = torch.log(u).to(dtype).mul_(2.0)  # accept where 2 log u < d - d'
-    log_w2 = None
-    # the steps that kept their particles (the filter's ``resampled``; None: none)
-    kept = None if resampled is None else ~resampled[blk.start + 1 : blk.stop + 1].unsqueeze(-1)
-    if kept is not None and bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
-        log_w2 = torch.where(kept, logW[blk], 0.0).mul_(2.0)
-        thr -= torch.gather(log_w2, 2, props).view(t, B, steps, M)
-    props = props.view(t, B, steps, M)
-    if nx == 1:
-        zf1, zx1 = zf[..., 0], zx[..., 0]
-        cand = torch.gather(zf1, 2, props.view(t, B, n)).view(t, B, steps, M)
-        d0 = zx1 - torch.gather(zf1, 2, A_next)
-        d0 = d0 * d0
-    else:
-        cand = torch.gather(zf, 2, props.view(t, B, n, 1).expand(t, B, n, nx)).view(t, B, steps, M, nx)
-        d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
-    if log_w2 is not None:
-        d0 -= torch.gather(log_w2, 2, A_next)
-        w2_props = torch.gather(log_w2, 2, props.view(t, B, n)).view(t, B, steps, M) if steps > 1 else None
-    # every step's views made once per block (a list lookup is free; indexing a tensor with
-    # ``[i, :, s]`` costs a few microseconds of Python and view operations, at one record as much
-    # as an operation on its 1,000 trajectories)
-    by_move = lambda x: [v.unbind(0) for v in x.unbind(2)]  # noqa: E731  [s][i]: (B, M, ...)
-    THR, PROPS, CAND = by_move(thr), by_move(props), by_move(cand)
-    W2 = by_move(w2_props) if log_w2 is not None and steps > 1 else None
-    A, D0, JS = A_next.unbind(0), d0.unbind(0), Js.unbind(0)
-    ZX = zx1.unbind(0) if nx == 1 else zx.unbind(0)
+    pick, u = _block_uniforms(draws, generator, t, B, L, steps, M, zf.device)
+    THR, PROPS, CAND, W2, A, D0, ZX = _block_lookups(blk, zf, zx, A_next, resampled, logW, pick, u, steps)
+    JS = Js.unbind(0)
     last = steps - 1
     if nx == 1 and steps == 1 and all(all_valid[blk.start : blk.stop]):
         # the common case (one state, one move, no padding) as a loop of its seven operations and
@@ -297,6 +263,63 @@ def _mcmc_block(
             # an i.i.d. draw from the filter weights, or each sequence's draw at its last step (streams).
             restart = _draw(logW[k], M, generator) if draws is None else J_last
             torch.where(trans[k].unsqueeze(-1), J, restart, out=JS[i])
+
+
+def _block_uniforms(draws: Tensor | None, generator, t: int, B: int, L: int, steps: int, M: int, device):
+    """The MCMC block's random numbers, time-major: the proposals' uniform picks among the ``L``
+    particles ``(t, B, S M)`` and the acceptance uniforms ``(t, B, S, M)``, from ``draws`` (see
+    :func:`_mcmc_block`) or drawn from ``generator``."""
+    n = steps * M
+    if draws is None:
+        pick = torch.randint(L, (t, B, n), device=device, generator=generator)
+        u = torch.rand(t, B, steps, M, dtype=_UNIFORM_DTYPE, device=device, generator=generator)
+    else:  # from the draws' layout (B, t, ...) in reversed time to time-major (t, B, ...)
+        d = draws.view(B, t, 2, n)
+        pick = d[:, :, 0].mul(L).long().clamp_(max=L - 1).transpose(0, 1).flip(0)
+        u = d[:, :, 1].reshape(B, t, steps, M).transpose(0, 1).flip(0)
+    return pick, u
+
+
+def _block_lookups(
+    blk: slice, zf: Tensor, zx: Tensor, A_next: Tensor, resampled: Tensor | None, logW: Tensor,
+    pick: Tensor, u: Tensor, steps: int,
+) -> tuple:
+    """What the MCMC block's loop looks up, as lists of views made once: per move ``s`` and step
+    ``i`` the thresholds ``THR[s][i]``, proposals ``PROPS[s][i]``, their predictions ``CAND[s][i]``
+    ``(B, M, ...)`` and, where the filter's weights enter and there are several moves, the
+    proposals' ``2 log W`` ``W2[s][i]`` (else ``W2`` is ``None``); per step the parents ``A[i]``,
+    the squared distances to them ``D0[i]`` ``(B, L)`` and the whitened states ``ZX[i]``."""
+    t = blk.stop - blk.start
+    B, L, nx = zf.shape[1:]
+    M = u.shape[-1]
+    n = steps * M
+    props = torch.gather(A_next, 2, pick)  # (t, B, S M)
+    thr = torch.log(u).to(zf.dtype).mul_(2.0)  # accept where 2 log u < d - d'
+    log_w2 = None
+    # the steps that kept their particles (the filter's ``resampled``; None: none)
+    kept = None if resampled is None else ~resampled[blk.start + 1 : blk.stop + 1].unsqueeze(-1)
+    if kept is not None and bool(kept.any()):  # there the weights W enter: 2 log W, 0 after a resampling
+        log_w2 = torch.where(kept, logW[blk], 0.0).mul_(2.0)
+        thr -= torch.gather(log_w2, 2, props).view(t, B, steps, M)
+    props = props.view(t, B, steps, M)
+    if nx == 1:
+        zf1, zx1 = zf[..., 0], zx[..., 0]
+        cand = torch.gather(zf1, 2, props.view(t, B, n)).view(t, B, steps, M)
+        d0 = zx1 - torch.gather(zf1, 2, A_next)
+        d0 = d0 * d0
+    else:
+        cand = torch.gather(zf, 2, props.view(t, B, n, 1).expand(t, B, n, nx)).view(t, B, steps, M, nx)
+        d0 = squared_norm(zx - torch.gather(zf, 2, A_next.unsqueeze(-1).expand(t, B, L, nx)))
+    if log_w2 is not None:
+        d0 -= torch.gather(log_w2, 2, A_next)
+        w2_props = torch.gather(log_w2, 2, props.view(t, B, n)).view(t, B, steps, M) if steps > 1 else None
+    # every step's views made once per block (a list lookup is free; indexing a tensor with
+    # ``[i, :, s]`` costs a few microseconds of Python and view operations, at one record as much
+    # as an operation on its 1,000 trajectories)
+    by_move = lambda x: [v.unbind(0) for v in x.unbind(2)]  # noqa: E731  [s][i]: (B, M, ...)
+    W2 = by_move(w2_props) if log_w2 is not None and steps > 1 else None
+    ZX = zx1.unbind(0) if nx == 1 else zx.unbind(0)
+    return by_move(thr), by_move(props), by_move(cand), W2, A_next.unbind(0), d0.unbind(0), ZX
 
 
 def _reject(

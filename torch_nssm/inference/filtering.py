@@ -205,70 +205,39 @@ def particle_filter(
     """
     resample = get_resampler(resampling)
     fast_systematic = resample is systematic
-    T, B = data.n_steps, data.n_sequences
-    L = n_particles
+    T, B, L = data.n_steps, data.n_sequences, n_particles
     scale = masked_scale(model.noise.per_sequence("Rv", B).unsqueeze(0), data.obs_mask)
     streams = generator if isinstance(generator, SequenceStreams) else None
     lengths = data.lengths.tolist() if streams is not None else None
-    if initial_particles is None:
-        x0 = sample_initial_state(model, B, L, generator)
-    else:
-        x0 = initial_particles
-        if x0.shape[:2] != (B, L):
-            raise ValueError(f"initial_particles must have shape ({B}, {L}, nx), got {tuple(x0.shape)}")
+    x0 = _first_particles(model, B, L, generator, initial_particles)
     nx, dtype, device = x0.shape[-1], x0.dtype, x0.device
-    # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
-    particles = _workspace.empty((T, B, L, nx), dtype, device)
-    log_weights = _workspace.empty((T, B, L), dtype, device)
-    ancestors = _workspace.empty((T, B, L), torch.long, device)
-    particles[0] = x0
-    arange = torch.arange(L, device=device).expand(B, L)
-    ancestors[0] = arange
-    noise_scale = None  # one state: sqrt(Rw) per sequence, applied in the step
-    if T > 1:  # x_k = f(.) + noise, added in place
-        noise_scale = _process_noise(model, L, generator, particles[1:], lengths)
     always = ess_threshold >= 1.0
-    resampled = None if always else torch.zeros(T, B, dtype=torch.bool, device=device)
-    # Per-step terms, (B, 1) each, collected in lists and stacked after the loop (no per-step
-    # views of (T, B, 1) arrays to write into: a view costs as much as a small operation): max logit
-    # ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``; the log-likelihood, the normalisation
-    # of the stored log-weights and the ESS follow after the loop.  Resampling at every step, the
-    # next step's systematic resampler sums ``exp(logit - m)`` (its cumulative sum) and gives
-    # ``1 / s``: one operation a step fewer.
+    particles, log_weights, ancestors, arange, noise_scale, resampled = _output_arrays(
+        model, x0, T, generator, lengths, always
+    )
+    # Per-step terms (B, 1), listed and finished after the loop (:func:`_filter_output`): max logit
+    # ``m``, ``s = sum exp(logit - m)``, ``||exp(logit - m)||``.  Resampling at every step, the next
+    # step's systematic resampler sums ``exp(logit - m)`` and gives ``1 / s``: one operation a step fewer.
     inv_s = always and fast_systematic and T > 1
     ms: list[Tensor] = []
     ss: list[Tensor] = []  # s, or with ``inv_s`` 1 / s (from the resampler) and s at the last step
     norms: list[Tensor] = []  # ``||exp(logit - m)||``: the ESS, where not resampling at every step
     density = model.noise.evaluator(scale, L)  # the noise family's per-step log-density (and arrays)
-    # The steps write into the outputs made above (``out=``, in place) and run in inference mode:
-    # no autograd bookkeeping on their ~20 operations and ~10 views a step (measured 5-8 % of a
-    # one-record E-step, 2,000 x 1,000 particles).  What is made inside (inference tensors: never
-    # saved for backward, never modified in place outside) leaves it only through the stacking of
-    # the per-step terms below, a new ordinary tensor (tests/inference/test_inference_mode.py).
+    # The steps write into the outputs made above (``out=``, in place) and run in inference mode: no
+    # autograd bookkeeping on their ~20 operations and ~10 views a step (measured 5-8 % of a one-record
+    # E-step, 2,000 x 1,000 particles).  What is made inside (inference tensors: never saved for backward,
+    # never modified in place outside) leaves it only stacked by :func:`_filter_output` (a new tensor).
     with torch.inference_mode():
-        # Per-step random numbers drawn up front too (systematic resampling: one uniform per row).
-        if fast_systematic:
+        if fast_systematic:  # per-step random numbers drawn up front too: one uniform per row
             uniforms = _systematic_uniforms(generator, streams, lengths, T, B, dtype, device)
             resample_systematic = SystematicResampler(B, L, dtype, device)
-        y0, C = scale.fill_missing(data.y), scale.whitener()  # no masking per step
-        p = y0.shape[-1]
-        if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
-            cy, c1 = _one_output_whitening(y0, C, T, B, L)
+        y0, C, p, cy, c1 = _observation_terms(scale, data.y, T, B, L)
         # Views of every step, made once (indexing a list is free, a tensor select is an operation).
         X, LW, A = particles.unbind(0), log_weights.unbind(0), ancestors.unbind(0)
-        if nx == 1:  # the parents gathered from (B, L) rows into one reused array: 2.5-3x cheaper than
-            # gathering (B, L, 1) rows with an expanded index
-            parents = torch.empty(B, L, 1, dtype=dtype, device=device)
-            parents_2d, X_2d = parents[..., 0], particles[..., 0].unbind(0)
-            if noise_scale is not None:  # expanded to the particles: addcmul's vectorised loop
-                noise_scale = noise_scale.view(B, 1, 1).expand(B, L, 1).contiguous()
-        else:
-            A_gather = ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
-        f, g = _frozen(model.f), _frozen(model.g)
-        U_f, U_g = _step_inputs(f, data.u, L), _step_inputs(g, data.u, L)
-        log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
+        parents, parents_2d, X_2d, noise_scale, A_gather = _parent_views(particles, ancestors, noise_scale)
+        f, g, U_f, U_g = _step_functions(model, data.u, L)
+        log_uniform, e_buffer = _weight_arrays(B, L, dtype, device)
         log_w = log_uniform  # normalised log-weights (needed only without ``always``)
-        e_buffer = torch.empty(B, L, dtype=dtype, device=device)  # read by the next step's resampling only
         e = log_uniform  # exp(logit - m) of the previous step (set at k = 0 before its first use)
         for k in range(T):
             x = X[k]
@@ -311,6 +280,100 @@ def particle_filter(
             if not always:
                 norms.append(torch.linalg.vector_norm(e, dim=-1, keepdim=True))
                 log_w = z - torch.log(s)
+    return _filter_output(
+        particles, log_weights, ancestors, resampled, (ms, ss, norms), inv_s, always, density, scale, L
+    )
+
+
+def _first_particles(
+    model: StateSpaceModel, B: int, L: int, generator: Randomness, initial_particles: Tensor | None
+) -> Tensor:
+    """The particles of the first step ``(B, L, nx)``: draws of the model's prior, or the caller's
+    ``initial_particles`` (checked for their shape)."""
+    if initial_particles is None:
+        return sample_initial_state(model, B, L, generator)
+    if initial_particles.shape[:2] != (B, L):
+        raise ValueError(
+            f"initial_particles must have shape ({B}, {L}, nx), got {tuple(initial_particles.shape)}"
+        )
+    return initial_particles
+
+
+def _output_arrays(
+    model: StateSpaceModel, x0: Tensor, T: int, generator: Randomness, lengths, always: bool
+) -> tuple:
+    """The filter's output arrays, preallocated: ``particles`` ``(T, B, L, nx)`` with the first step
+    ``x0`` and the process noise of the others written in, ``log_weights`` ``(T, B, L)``,
+    ``ancestors`` ``(T, B, L)`` (identity at the first step), and the identity ancestors ``(B, L)``,
+    the noise's scale (one state: ``sqrt(Rw)`` per sequence, applied in the step; else ``None``),
+    the ``resampled`` flags ``(T, B)`` (``None`` with ``always``)."""
+    B, L, nx = x0.shape
+    dtype, device = x0.dtype, x0.device
+    # Every step writes into these preallocated outputs (``out=`` / in place): no per-step copies.
+    particles = _workspace.empty((T, B, L, nx), dtype, device)
+    log_weights = _workspace.empty((T, B, L), dtype, device)
+    ancestors = _workspace.empty((T, B, L), torch.long, device)
+    particles[0] = x0
+    arange = torch.arange(L, device=device).expand(B, L)
+    ancestors[0] = arange
+    noise_scale = None
+    if T > 1:  # x_k = f(.) + noise, added in place
+        noise_scale = _process_noise(model, L, generator, particles[1:], lengths)
+    resampled = None if always else torch.zeros(T, B, dtype=torch.bool, device=device)
+    return particles, log_weights, ancestors, arange, noise_scale, resampled
+
+
+def _observation_terms(scale: MaskedScale, y: Tensor, T: int, B: int, L: int) -> tuple:
+    """The outputs with the missing ones filled ``y0``, the whitener ``C`` of every step (no masking
+    per step), the number of outputs ``p`` and, for one output, the terms of
+    :func:`_one_output_whitening` (else ``None``)."""
+    y0, C = scale.fill_missing(y), scale.whitener()
+    p = y0.shape[-1]
+    cy = c1 = None
+    if p == 1:  # whitened residual c (y - g) = c y - c g: one multiply-add per step
+        cy, c1 = _one_output_whitening(y0, C, T, B, L)
+    return y0, C, p, cy, c1
+
+
+def _step_functions(model: StateSpaceModel, u: Tensor, L: int) -> tuple:
+    """The transition and observation evaluators of one pass (:func:`_frozen`) and their inputs of
+    every step (:func:`_step_inputs`)."""
+    f, g = _frozen(model.f), _frozen(model.g)
+    return f, g, _step_inputs(f, u, L), _step_inputs(g, u, L)
+
+
+def _weight_arrays(B: int, L: int, dtype, device) -> tuple:
+    """The uniform log-weights ``-log L`` ``(B, L)`` and the reused array of a step's
+    ``exp(logit - m)`` ``(B, L)`` (read by the next step's resampling only)."""
+    log_uniform = torch.full((B, L), -math.log(L), dtype=dtype, device=device)
+    return log_uniform, torch.empty(B, L, dtype=dtype, device=device)
+
+
+def _parent_views(particles: Tensor, ancestors: Tensor, noise_scale: Tensor | None) -> tuple:
+    """What the step needs to gather the parents of its particles: with one state, a reused
+    ``parents`` array ``(B, L, 1)``, its ``(B, L)`` view, the ``(B, L)`` views of every step's
+    particles and the noise's scale expanded to the particles; else the gather index of every
+    step ``(B, L, nx)`` (the others ``None``, the noise's scale as it is)."""
+    T, B, L, nx = particles.shape
+    if nx != 1:
+        return None, None, None, noise_scale, ancestors.unsqueeze(-1).expand(T, B, L, nx).unbind(0)
+    # the parents gathered from (B, L) rows into one reused array: 2.5-3x cheaper than gathering
+    # (B, L, 1) rows with an expanded index
+    parents = torch.empty(B, L, 1, dtype=particles.dtype, device=particles.device)
+    if noise_scale is not None:  # expanded to the particles: addcmul's vectorised loop
+        noise_scale = noise_scale.view(B, 1, 1).expand(B, L, 1).contiguous()
+    return parents, parents[..., 0], particles[..., 0].unbind(0), noise_scale, None
+
+
+def _filter_output(
+    particles, log_weights, ancestors, resampled, terms: tuple, inv_s: bool, always: bool, density, scale,
+    L: int,
+) -> FilterOutput:
+    """The :class:`FilterOutput` from the loop's per-step ``terms`` ``(ms, ss, norms)``, ``(B, 1)``
+    each (listed, not written into views of ``(T, B, 1)`` arrays: a view costs as much as a small
+    operation): the stored log-weights normalised in place, the log-likelihood and, where the loop
+    needed it, the ESS."""
+    ms, ss, norms = terms
     m_all, s_all = torch.stack(ms), torch.stack(ss)  # (T, B, 1)
     if inv_s:
         s_all[:-1].reciprocal_()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import time
 import warnings
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -295,26 +296,7 @@ def table1(
         <= 0.010, None if it ends above); ``table``, ``files``, ``settings``, ``seconds``.
     """
     out = _out(out_dir)
-    s = (
-        dict(n_sets=4, n_samples=300, n_iter=6, n_particles=50, n_avg=3)
-        if fast
-        else dict(n_sets=100, n_samples=1000, n_iter=250, n_particles=100, n_avg=50)
-    )
-    if n_sets is not None:
-        s["n_sets"] = int(n_sets)
-    if n_iter is not None:
-        s["n_iter"] = int(n_iter)
-        s["n_avg"] = min(s["n_avg"], max(1, s["n_iter"] // 4))
-    settings = dict(
-        experiment="table1",
-        fast=fast,
-        seed=seed,
-        noise_true="St(0, 0.01, 1) (Cauchy)",
-        init=PAPER_INIT,
-        smoother="mcmc",
-        batched=True,
-        **s,
-    )
+    s, settings = _table1_settings(fast, seed, n_sets, n_iter)
     datas = [make_huang_example(n_samples=s["n_samples"], random_state=seed + i) for i in range(s["n_sets"])]
     proto = _paper_estimator(
         "student-t", s["n_particles"], s["n_iter"], seed, smoother="mcmc", verbose=int(progress)
@@ -346,11 +328,7 @@ def table1(
         "mean s.e. (ours)",
     ]
     table = _write_table(out, "table1", header, rows, note)
-    with open(out / "table1_estimates.csv", "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(["seed", "a", "b", "c", "a_last", "b_last", "c_last"])
-        for i in range(len(est)):
-            w.writerow([seed + i, *est[i], *last[i]])
+    _write_table1_estimates(out / "table1_estimates.csv", seed, est, last)
     fig = _table1_figure(est, mean, std, bn_path, p["bias_norm"], window, s)
     files = [
         _savefig(fig, out / "table1.png"),
@@ -377,6 +355,41 @@ def table1(
         settings=settings,
         seconds=secs,
     )
+
+
+def _table1_settings(fast: bool, seed: int, n_sets: int | None, n_iter: int | None) -> tuple[dict, dict]:
+    """Table 1's sizes (``n_sets``, ``n_samples``, ``n_iter``, ``n_particles``, ``n_avg``) and the
+    settings written beside its results."""
+    s = (
+        dict(n_sets=4, n_samples=300, n_iter=6, n_particles=50, n_avg=3)
+        if fast
+        else dict(n_sets=100, n_samples=1000, n_iter=250, n_particles=100, n_avg=50)
+    )
+    if n_sets is not None:
+        s["n_sets"] = int(n_sets)
+    if n_iter is not None:
+        s["n_iter"] = int(n_iter)
+        s["n_avg"] = min(s["n_avg"], max(1, s["n_iter"] // 4))
+    settings = dict(
+        experiment="table1",
+        fast=fast,
+        seed=seed,
+        noise_true="St(0, 0.01, 1) (Cauchy)",
+        init=PAPER_INIT,
+        smoother="mcmc",
+        batched=True,
+        **s,
+    )
+    return s, settings
+
+
+def _write_table1_estimates(path: Path, seed: int, est: np.ndarray, last: np.ndarray) -> None:
+    """Each data set's averaged and last estimates of ``(a, b, c)`` as a CSV file, one row a seed."""
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["seed", "a", "b", "c", "a_last", "b_last", "c_last"])
+        for i in range(len(est)):
+            w.writerow([seed + i, *est[i], *last[i]])
 
 
 def _bias_norm_path(hist: np.ndarray, theta: np.ndarray, window: int) -> tuple:
