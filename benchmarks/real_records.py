@@ -305,7 +305,6 @@ def _run_silverbox(outliers, options, *, budget, clock, quick, verbose) -> dict[
         ours.update(rmse=math.nan, rmse_no_extrapolation=math.nan)
     row["ours"] = ours
     row["ratio_ours_oe_linear"] = _ratio(ours["rmse"], row["oe_linear"]["rmse"])
-    row["ratio_known_x0"] = _ratio(ours["rmse_known_x0"], row["oe_linear"]["rmse_known_x0"])
     row["notes"] = _notes(ours)
     say(f"ours: arrow RMSE {ours['rmse']:.3f} mV, fit {fit['fit_seconds']:.1f} s; " + "; ".join(row["notes"]))
     return row
