@@ -252,13 +252,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         ``E[lam_k | y]`` at the fitted parameters: near 0 marks an outlier, about 1 a regular
         sample, above 1 a small residual (up to ``(dof + p) / dof``); NaN where ``y_k`` is
         missing; per output for ``"student-t-per-output"``.
-    outliers_ : ndarray of bool, shaped as ``outlier_weights_`` (or a list of them)
-        The samples flagged as outliers: weight below ``outlier_threshold_``.
-    outlier_threshold_ : float or ndarray of shape (p,)
-        The flagging weight: for Student-t noise the weight of a residual that the noise's Gaussian
-        core exceeds once in a thousand samples, ``(dof + p) / (dof + chi2_p(0.999))`` (about 0.17
-        at ``dof = 1``, 0.38 at ``dof = 5``), so that a low dof does not flag regular samples;
-        0.5 for the other families.
+    outliers_, outlier_threshold_ : ndarray of bool shaped as ``outlier_weights_``; float or (p,)
+        The flagged samples: weight below ``outlier_threshold_``, ``(dof + p) / (dof + chi2_p(0.999))``
+        for Student-t noise (a residual beyond its Gaussian core's 99.9 % quantile), else 0.5.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
     first_stage_ : FirstStageReport, NeuralFirstStageReport or None
