@@ -63,13 +63,17 @@ def _fit(scale: float):
 def test_tiny_states_and_outputs_give_the_same_relative_estimates():
     usual, tiny = _fit(1.0), _fit(SCALE)
     assert tiny.first_stage_.accepted and usual.first_stage_.accepted
-    assert float(tiny.f_.a.detach()) == pytest.approx(float(usual.f_.a.detach()), rel=1e-3)
-    assert float(tiny.f_.b.detach()) / SCALE == pytest.approx(float(usual.f_.b.detach()), rel=1e-3)
+    # the first stage's estimates (held by EM: a simulation model) agree to its finite differences'
+    # resolution; the noise EM then follows its own particle path: a difference of 1e-7 in a and b
+    # can flip one resampling decision, and the noise estimates differ by their Monte Carlo error
+    # (0.65 % in Rw measured), not by the scale
+    assert float(tiny.f_.a.detach()) == pytest.approx(float(usual.f_.a.detach()), rel=1e-5)
+    assert float(tiny.f_.b.detach()) / SCALE == pytest.approx(float(usual.f_.b.detach()), rel=1e-5)
     assert float(usual.f_.a.detach()) == pytest.approx(0.9, abs=0.05)
     for name in ("Rw_", "Rv_"):
         assert np.all(np.isfinite(getattr(tiny, name)))
-        assert getattr(tiny, name)[0, 0] / SCALE**2 == pytest.approx(getattr(usual, name)[0, 0], rel=1e-4)
-    assert float(tiny.dof_) == pytest.approx(float(usual.dof_), rel=1e-4)
+        assert getattr(tiny, name)[0, 0] / SCALE**2 == pytest.approx(getattr(usual, name)[0, 0], rel=2e-2)
+    assert float(tiny.dof_) == pytest.approx(float(usual.dof_), rel=2e-2)
 
 
 def test_em_failing_in_every_run_after_a_kept_first_stage_keeps_the_start(monkeypatch):
