@@ -449,6 +449,7 @@ def main(argv=None) -> None:
             args.max_seconds,
             args.max_iter,
             args.losses.split(","),
+            args.linear_part,
         )
     else:
         out = suite(args.plants.split(","), args.quick)

@@ -211,3 +211,23 @@ def test_adam_needs_records_longer_than_a_window():
         neural_first_stage(
             model, _batch(u, y), NeuralFirstStageOptions(optimizer="adam", horizon=20, encoder_lags=20)
         )
+
+
+def test_default_iteration_cap_depends_on_a_held_out_part(monkeypatch):
+    """Without ``max_iter`` each LBFGS phase stops at ``LBFGS_MAX_ITER`` iterations when a held-out
+    part scores the early stop, and at ``LBFGS_MAX_ITER_NO_HOLDOUT`` when nothing is held out."""
+    from torch_nssm.estimation import neural_first_stage as nfs
+
+    monkeypatch.setattr(nfs, "LBFGS_MAX_ITER", 12)
+    monkeypatch.setattr(nfs, "LBFGS_MAX_ITER_NO_HOLDOUT", 6)
+    u, y, _, _ = _plant(300, 3)
+    data = _batch(u, y)
+    base = dict(horizon=20, max_horizon=40, eval_every=3, patience=100)  # two phases, no early stop
+    for fraction, cap in ((0.2, 12), (0.0, 6)):
+        model = StateSpaceModel(
+            MLPTransition(1, 1, hidden=(4,), random_state=0), Identity(), None, None, torch.zeros(1), None
+        )
+        options = NeuralFirstStageOptions(validation_fraction=fraction, **base)
+        report = neural_first_stage(model, data, options)
+        assert report.stop_reason == "max_iter"
+        assert report.iterations == 2 * cap  # each of the two phases runs to its cap
