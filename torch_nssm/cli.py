@@ -203,10 +203,11 @@ def run_demo(
     )
 
     ow = fits["robust"].outlier_weights_
-    flagged = ow < 0.2
+    flagged = fits["robust"].outliers_
     true_out = data.outlier_mask
     print(
-        f"\nOutliers: {int(flagged.sum())} samples flagged (outlier weight E[lambda|y] < 0.2); "
+        f"\nOutliers: {int(flagged.sum())} samples flagged (outlier weight E[lambda|y] < "
+        f"{float(fits['robust'].outlier_threshold_):.2f}, est.outliers_); "
         f"{int((flagged & true_out).sum())} of the {int(true_out.sum())} injected ones among them, "
         f"{int((flagged & ~true_out).sum())} regular samples flagged."
     )
