@@ -3,14 +3,6 @@
 :func:`~torch_nssm.starts.simulation_start`)."""
 
 from ._deprecation import module_getattr
+from .blocks.warm_start import RENAMED
 
-_STARTS = "torch_nssm.starts"
-_ALIASES = {
-    "warm_start_estimator": (_STARTS, "distilled_start"),
-    "simulation_warm_start": (_STARTS, "simulation_start"),
-    "WarmStartInfo": (_STARTS, "DistilledStartInfo"),
-    "distill": (_STARTS, "distill"),
-    "LinearTransition": (_STARTS, "LinearTransition"),
-    "LinearObservation": (_STARTS, "LinearObservation"),
-}
-__getattr__ = module_getattr(__name__, _ALIASES)
+__getattr__ = module_getattr(__name__, {old: ("torch_nssm.starts", new) for old, new in RENAMED.items()})

@@ -4,13 +4,13 @@
 
 from .._deprecation import module_getattr
 
-_STARTS = "torch_nssm.blocks.starts"
-_ALIASES = {
-    "warm_start_estimator": (_STARTS, "distilled_start"),
-    "simulation_warm_start": (_STARTS, "simulation_start"),
-    "WarmStartInfo": (_STARTS, "DistilledStartInfo"),
-    "distill": (_STARTS, "distill"),
-    "LinearTransition": (_STARTS, "LinearTransition"),
-    "LinearObservation": (_STARTS, "LinearObservation"),
+#: old name in this module -> its name in the starts module (also :mod:`torch_nssm.warm_start`'s)
+RENAMED = {
+    "warm_start_estimator": "distilled_start",
+    "simulation_warm_start": "simulation_start",
+    "WarmStartInfo": "DistilledStartInfo",
+    "distill": "distill",
+    "LinearTransition": "LinearTransition",
+    "LinearObservation": "LinearObservation",
 }
-__getattr__ = module_getattr(__name__, _ALIASES)
+__getattr__ = module_getattr(__name__, {o: ("torch_nssm.blocks.starts", n) for o, n in RENAMED.items()})

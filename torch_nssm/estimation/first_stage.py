@@ -287,15 +287,22 @@ class _Shooting:
         return out
 
 
+def _robust_scales(values: Tensor, mask: Tensor, about_median: bool = False) -> Tensor:
+    """Robust scale (1.4826 MAD about 0, or about the median) of each output's observed ``values``
+    (last axis: outputs; ``mask`` of the same shape), 1 where it is not positive and finite."""
+    scale = []
+    for j in range(values.shape[-1]):
+        col = values[..., j][mask[..., j]]
+        if about_median and col.numel():
+            col = col - col.median()
+        s = MAD_TO_STD * col.abs().median() if col.numel() else values.new_tensor(1.0)
+        scale.append(s if bool(torch.isfinite(s) & (s > 0)) else values.new_tensor(1.0))
+    return torch.stack(scale)
+
+
 def _output_scale(data: SequenceBatch) -> Tensor:
-    """Robust spread (1.4826 MAD) of each output over all observed samples, floored."""
-    y = data.y.reshape(-1, data.y.shape[-1])
-    scales = []
-    for j in range(y.shape[-1]):
-        col = y[:, j][torch.isfinite(y[:, j])]
-        s = MAD_TO_STD * (col - col.median()).abs().median() if col.numel() else y.new_tensor(1.0)
-        scales.append(s if bool(s > 0) else y.new_tensor(1.0))
-    return torch.stack(scales)
+    """Robust spread (1.4826 MAD about the median) of each output over all observed samples."""
+    return _robust_scales(data.y, torch.isfinite(data.y), about_median=True)
 
 
 def _free_run_errors(model: StateSpaceModel, data: SequenceBatch, x0: Tensor) -> Tensor:
@@ -371,17 +378,6 @@ SCALE_SHRINK = 4.0
 SCALE_PASSES = 3
 
 
-def _robust_scales(r: Tensor, mask: Tensor) -> Tensor:
-    """Robust scale (1.4826 MAD about 0) of each output's observed residuals ``r`` ``(W, T, p)``
-    (1 where it is not positive and finite); ``mask`` ``(W, T, p)``."""
-    scale = []
-    for j in range(r.shape[-1]):
-        col = r[..., j][mask[..., j]]
-        s = MAD_TO_STD * col.abs().median() if col.numel() else r.new_tensor(1.0)
-        scale.append(s if bool(torch.isfinite(s) & (s > 0)) else r.new_tensor(1.0))
-    return torch.stack(scale)
-
-
 def _fit_stage(
     params: FreeParameters,
     theta: Tensor,
@@ -405,14 +401,14 @@ def _fit_stage(
     scale = _robust_scales(errors(theta, x0), mask)
     links = _links(spans, x0)
     initial, iterations = None, 0
-    for _ in range(SCALE_PASSES):
+    for run in range(SCALE_PASSES):
         problem = _Shooting(params, windows, scale)
         result = levenberg_marquardt(
             problem, theta, x0, problem.weight, loss=loss, links=links, max_iter=max_iter, ftol=STAGE_FTOL
         )
         initial = result.initial_objective if initial is None else initial
         iterations += result.n_iter
-        if loss == "linear" or result.status == "not_finite":
+        if loss == "linear" or result.status == "not_finite" or run == SCALE_PASSES - 1:
             break
         theta, x0 = result.theta, result.local
         fresh = _robust_scales(errors(theta, x0), mask)
