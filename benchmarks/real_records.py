@@ -350,7 +350,7 @@ def markdown_table(rows: list[dict]) -> str:
             ours_cell += " budget"
         flagged = "-"
         if "low_weight_share" in ours:
-            share = ours.get("false_flag_share", ours["low_weight_share"])  # rows from before outliers_
+            share = ours.get("false_flag_share", ours["low_weight_share"])  # older rows: low weights
             flagged = f"({100 * share:.1f} %)"
             if ours["n_outliers"]:
                 flagged = f"{ours['flagged_outliers']}/{ours['n_outliers']} {flagged}"
