@@ -32,6 +32,7 @@ from ..inference import prediction
 from ..metrics import robust_r2_score
 from .first_stage import FirstStageReport, first_stage_applies, simulation_error_fit
 from .neural_first_stage import NeuralFirstStageReport, default_options, holds_network, neural_first_stage
+from .noise_start import NoiseLadder, likeliest_process_noise
 
 __all__ = [
     "Start",
@@ -140,6 +141,9 @@ class Start:
         Lower bound of each output's measurement-noise variance, ``(p,)``: ``q**2 / 12`` for an
         output recorded on a grid of step ``q`` (an encoder, an A/D converter; 0 elsewhere), the
         variance of the rounding itself (:func:`measurement_floor`).  ``None``: no output on a grid.
+    noise_ladder : NoiseLadder or None
+        How a simulation model's starting process noise was chosen
+        (:func:`.noise_start.likeliest_process_noise`); ``None`` where it was not.
     """
 
     model: StateSpaceModel
@@ -154,6 +158,7 @@ class Start:
     hold_modules: bool = False
     interrupted: bool = False
     Rv_floor: torch.Tensor | None = None
+    noise_ladder: NoiseLadder | None = None
 
     def run_start(self, r: int, data: SequenceBatch, device: torch.device) -> tuple:
         """EM run ``r``'s start, its particle generator and whether its simulation stays bounded:
@@ -182,8 +187,9 @@ def plan_start(
     simulation for tracking) and the first state's mean, and estimates the noise around them: the
     process noise, the measurement noise (from the first stage's output errors when ``Rv_init`` is
     not given) and the outlier weights.  Otherwise EM estimates every parameter.  A process noise
-    not given starts at :func:`scaled_process_noise`, and after a kept first stage a first-state
-    prior not given at :func:`state_spread`.
+    not given starts at :func:`scaled_process_noise` (a simulation model's then raised while the
+    filter's likelihood grows: :func:`.noise_start.likeliest_process_noise`), and after a kept
+    first stage a first-state prior not given at :func:`state_spread`.
     """
     start = Start(model, seeds=[], limit=math.inf, init_jitter=settings.init_jitter)
     if runs_first_stage(model, settings):
@@ -222,6 +228,9 @@ def plan_start(
     start.Rv_floor = measurement_floor(data)
     if start.Rv_floor is not None and not settings.Rv_given:
         start.model = replace(start.model, noise=start.model.noise.floored(start.Rv_floor))
+    if start.hold_modules and not settings.Rw_given and not settings.warm:
+        Rw, start.noise_ladder = likeliest_process_noise(start.model, data, stage_seed(settings.random_state))
+        start.model, start.staged = replace(start.model, Rw=Rw), replace(start.staged, Rw=Rw.clone())
     if restarts:
         start.limit, start.divergent_step = divergence_limit(start.model, data, check=not settings.warm)
         start.seeds = restart_seeds(settings.random_state, settings.n_runs)
