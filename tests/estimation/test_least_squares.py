@@ -153,6 +153,33 @@ def test_free_parameters_fall_back_to_one_call_per_vector():
     torch.testing.assert_close(out[1], x)
 
 
+@pytest.mark.parametrize("shared", [False, True])
+def test_free_parameters_bind_f_and_g_for_a_whole_simulation(shared):
+    """A simulation through ``forward("f")`` and ``forward("g")`` at each vector equals the modules
+    run at that vector, whether the modules share a parameter (bound per call) or not (bound once)."""
+    f, g = _Affine(), _Affine()
+    if shared:
+        g.a = f.a
+    fp = FreeParameters({"f": f, "g": g})
+    assert (fp._bound is None) == shared
+    v = fp.vector()
+    thetas = torch.stack([v, v + 0.5])
+    x0, u = torch.randn(2, dtype=D), 0.1 * torch.randn(6, 1, dtype=D)
+
+    def simulate(forward, x, uu):
+        ys = []
+        for k in range(uu.shape[0]):
+            ys.append(forward("g", x, uu[k]))
+            x = forward("f", x, uu[k])
+        return torch.stack(ys)
+
+    out = fp.map(simulate, thetas, x0, u)
+    for s in range(2):
+        fp.assign(thetas[s])
+        with torch.no_grad():
+            torch.testing.assert_close(out[s], simulate(lambda label, *a: {"f": f, "g": g}[label](*a), x0, u))
+
+
 def test_continuity_links_give_the_dense_least_squares_solution():
     """Linear windows whose end states are linked to the next window's first state: the block
     tridiagonal elimination gives the dense least-squares solution of all rows, link rows included
