@@ -163,6 +163,33 @@ def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypa
     assert result.log_likelihood == pytest.approx(result.history["log_likelihood"][-1], abs=50)
 
 
+def test_a_fall_of_the_estimate_alone_is_measured_again_and_em_goes_on(monkeypatch):
+    """A log-likelihood estimate that falls by Monte Carlo error alone (here: made to fall) is
+    measured again with more particles at both iterates; the iterate stands and EM goes on."""
+    d = make_paper_example(n_samples=200, random_state=0)
+    est = RobustNSSMEstimator(
+        PaperTransition(0.9, 1.0), PaperObservation(1.0), x0_mean=[0.0], n_iter=0, first_stage=None
+    ).fit(d.u, d.y)
+    model = est._fitted_model(torch.device("cpu"))
+    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    real = loop_module.e_step
+    calls = {"n": 0}
+
+    def unlucky(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 3:  # the E-step after the second M-step: an estimate far too low
+            out.filter.log_likelihood.sub_(1e4)
+        return out
+
+    monkeypatch.setattr(loop_module, "e_step", unlucky)
+    options = EMOptions(n_iter=5, tol=0.0)
+    options.estep.n_particles = 50
+    result = run_em([model], data, options, torch.Generator().manual_seed(0))[0]
+    assert result.halted is None and result.n_done == 5
+    assert result.history["log_likelihood"][2] < result.history["log_likelihood"][1] - 5e3
+
+
 def test_the_measurement_noise_stays_above_the_rounding_of_an_output_on_a_grid():
     """An output recorded on a grid of step q (an encoder) has a measurement-noise variance of at
     least q**2 / 12, the rounding's own: EM's update is floored there, a start below it raised."""
