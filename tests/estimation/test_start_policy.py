@@ -134,13 +134,17 @@ def test_the_simulation_check_says_when_em_moved_a_simulation_model_to_simulate_
     assert check_simulation(start, Run(), free_run(worse, data.u)[1], data).outcome == "interrupted"
 
 
-def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypatch):
+def _paper_em_start():
+    """The paper's example (N = 200) as EM's start: its model and data, no iteration run."""
     d = make_paper_example(n_samples=200, random_state=0)
     est = RobustNSSMEstimator(
         PaperTransition(0.9, 1.0), PaperObservation(1.0), x0_mean=[0.0], n_iter=0, first_stage=None
     ).fit(d.u, d.y)
-    model = est._fitted_model(torch.device("cpu"))
-    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    return est._fitted_model(torch.device("cpu")), est._batch(d.u, d.y, torch.device("cpu"), fitted=True)[0]
+
+
+def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypatch):
+    model, data = _paper_em_start()
     real = loop_module.m_step
     calls = {"n": 0}
 
@@ -166,12 +170,7 @@ def test_an_iteration_whose_likelihood_collapses_is_undone_and_em_stops(monkeypa
 def test_a_fall_of_the_estimate_alone_is_measured_again_and_em_goes_on(monkeypatch):
     """A log-likelihood estimate that falls by Monte Carlo error alone (here: made to fall) is
     measured again with more particles at both iterates; the iterate stands and EM goes on."""
-    d = make_paper_example(n_samples=200, random_state=0)
-    est = RobustNSSMEstimator(
-        PaperTransition(0.9, 1.0), PaperObservation(1.0), x0_mean=[0.0], n_iter=0, first_stage=None
-    ).fit(d.u, d.y)
-    model = est._fitted_model(torch.device("cpu"))
-    data, _ = est._batch(d.u, d.y, torch.device("cpu"), fitted=True)
+    model, data = _paper_em_start()
     real = loop_module.e_step
     calls = {"n": 0}
 
