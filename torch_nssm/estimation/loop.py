@@ -428,13 +428,16 @@ def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCa
         ll = sum(lls) if groups.shared else lls[j]
         drop = groups.lls[g][-1] - ll
         limit = max(COLLAPSE_PER_OBS * groups.n_obs[g], COLLAPSE_MIN)
+        again = ""
         if drop > limit and groups.shared and estep.options.estep.segment_length is None:
             drop = _remeasured_fall(groups.snapshots[g], groups.models[g], estep, it)
+            n = COLLAPSE_RECHECK_FACTOR * estep.options.n_particles(it + 1)
+            again = f"; measured again with {n} particles: a fall of {drop:.6g}"
         if drop > limit:
             fallen.append(g)
             groups.halted[g] = (
                 f"the log-likelihood estimate fell from {groups.lls[g][-1]:.6g} to {ll:.6g} at iteration "
-                f"{it + 1} "
+                f"{it + 1}{again} "
                 "(far more than its Monte Carlo error: the particle filter degenerates, e.g. as a noise "
                 "parameter shrinks, or the M-step went wrong), so that iteration was undone and EM stopped "
                 f"at iteration {it}"
