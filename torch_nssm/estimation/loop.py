@@ -430,8 +430,8 @@ def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCa
         limit = max(COLLAPSE_PER_OBS * groups.n_obs[g], COLLAPSE_MIN)
         again = ""
         if drop > limit and groups.shared and estep.options.estep.segment_length is None:
-            drop = _remeasured_fall(groups.snapshots[g], groups.models[g], estep, it)
             n = COLLAPSE_RECHECK_FACTOR * estep.options.n_particles(it + 1)
+            drop = _remeasured_fall(groups.snapshots[g], groups.models[g], estep, n, seed=it + 1)
             again = f"; measured again with {n} particles: a fall of {drop:.6g}"
         if drop > limit:
             fallen.append(g)
@@ -453,18 +453,21 @@ def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCa
     return [g for g in still if g not in fallen]
 
 
-def _remeasured_fall(kept: tuple, model: StateSpaceModel, estep: EStepCache, it: int) -> float:
+def _remeasured_fall(
+    kept: tuple, model: StateSpaceModel, estep: EStepCache, n_particles: int, seed: int
+) -> float:
     """How far the log-likelihood falls from the iterate ``kept`` (a snapshot) to ``model``, each by
-    one filter pass of :data:`COLLAPSE_RECHECK_FACTOR` times the E-step's particles from the same
-    seed (its own: the fit's random stream is not touched); ``inf`` where a pass fails."""
-    n_particles = COLLAPSE_RECHECK_FACTOR * estep.options.n_particles(it + 1)
+    one pass of the E-step's filter with ``n_particles`` from ``seed`` (its own generator: the fit's
+    random stream is not touched); ``inf`` where a pass fails."""
+    options = estep.options.estep
 
     def log_likelihood(m: StateSpaceModel) -> float:
-        generator = torch.Generator(device=estep.data.y.device).manual_seed(it + 1)
+        generator = torch.Generator(device=estep.data.y.device).manual_seed(seed)
         try:
             out = particle_filter(
-                m, estep.data, n_particles, resampling=estep.options.estep.resampling, generator=generator
-            )
+                m, estep.data, n_particles, resampling=options.resampling,
+                ess_threshold=options.ess_threshold, generator=generator,
+            )  # fmt: skip
         except (NumericalError, torch.linalg.LinAlgError):
             return math.nan
         return float(out.log_likelihood.sum())

@@ -82,7 +82,7 @@ def _mean_log_likelihood(model: StateSpaceModel, data: SequenceBatch, seed: int)
     R = LADDER_REPLICAS
     shared = model.Rw.dim() == 2 and model.x0_mean.dim() == 1 and model.x0_cov.dim() == 2
     if shared and not model.noise.batched:  # the replicas as one batch of copies of the records
-        batches = [SequenceBatch(data.u.repeat(1, R, 1), data.y.repeat(1, R, 1), data.lengths.repeat(R))]
+        batches = [data.select(torch.arange(data.n_sequences, device=data.y.device).repeat(R))]
     else:  # one model per record (independent fits): one pass per replica
         batches = [data] * R
     values = []
