@@ -219,6 +219,7 @@ def test_estimator_fits_mlp_transition():
             n_particles=100,
             n_iter=n_iter,
             tol=0,
+            first_stage=None,  # EM itself trains the network here
             random_state=0,
         )
 

@@ -169,7 +169,8 @@ def test_large_modules_are_left_out_with_a_warning(data):
 
     f = MLPTransition(1, 1, hidden=(16, 16), random_state=0)
     est = RobustNSSMEstimator(
-        f, PaperObservation(1.0), x0_mean=[0.0], n_particles=50, n_iter=1, tol=0, random_state=0
+        f, PaperObservation(1.0), x0_mean=[0.0], n_particles=50, n_iter=1, tol=0, first_stage=None,
+        random_state=0,
     )
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
