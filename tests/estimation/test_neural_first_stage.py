@@ -231,3 +231,49 @@ def test_default_iteration_cap_depends_on_a_held_out_part(monkeypatch):
         report = neural_first_stage(model, data, options)
         assert report.stop_reason == "max_iter"
         assert report.iterations == 2 * cap  # each of the two phases runs to its cap
+
+
+class Position(torch.nn.Module):
+    """``y = x[0]``: the first state measured (no parameters)."""
+
+    def forward(self, x, u):
+        return x[..., :1]
+
+
+def _oscillator(n: int, seed: int):
+    """A lightly damped oscillator, 10 samples per period, state ``[position, velocity]`` (the velocity's
+    spread about 100 times the position's, as in mm and mm/s at 150 Hz), position measured."""
+    rng = np.random.default_rng(seed)
+    dt, w, zeta = 1.0 / 150.0, 2 * math.pi * 15.0, 0.05
+    u = rng.normal(size=n)
+    x = np.zeros((n, 2))
+    for k in range(n - 1):
+        vel = x[k, 1] + dt * (-(w**2) * x[k, 0] - 2 * zeta * w * x[k, 1] + 1000.0 * u[k])
+        x[k + 1] = [x[k, 0] + dt * vel, vel]
+    return u, x[:, 0] + 0.01 * rng.normal(size=n), x
+
+
+def test_lbfgs_windows_states_move_in_the_networks_state_units():
+    """Measuring the velocity in units 1024 times smaller (its normalisation scaled alike) trains the
+    same network: the windows' first states are free in units of the network's ``x_scale``, so LBFGS
+    takes the same steps; in raw units the rescaled state's curvature changes 2**20-fold."""
+    u, y, x = _oscillator(300, 0)
+    data = _batch(u, y)
+    spread, step = x.std(0), np.diff(x, axis=0).std(0)
+    options = NeuralFirstStageOptions(horizon=20, max_horizon=20, max_iter=40, eval_every=20)
+    runs = []
+    for c in (1.0, 1024.0):  # a power of 2: the rescaled arithmetic is exact
+        units = np.array([1.0, c])
+        f = MLPTransition(
+            2, 1, hidden=(8,), x_mean=0.0, x_scale=spread * units, out_scale=step * units, random_state=0
+        )
+        model = StateSpaceModel(f, Position(), None, None, torch.zeros(2, dtype=DTYPE), None)
+        report = neural_first_stage(model, data, options)
+        runs.append((f, report, units))
+    (f1, r1, _), (f2, r2, units) = runs
+    assert r1.iterations == r2.iterations > 0
+    np.testing.assert_allclose(r2.free_run_after, r1.free_run_after, rtol=1e-9)
+    for a, b in zip(f1.parameters(), f2.parameters()):
+        torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
+    scaled = r1.first_states * torch.as_tensor(units)
+    torch.testing.assert_close(r2.first_states, scaled, rtol=1e-9, atol=1e-12)

@@ -11,8 +11,9 @@ Forgione & Piga 2021), and this stage does that before EM:
   robust standard deviation (1.4826 MAD), so outliers and badly simulated windows do not steer
   the fit (``loss="squared"``: the least-squares baseline for Gaussian noise);
 * ``optimizer="lbfgs"`` (default): the windows tile the record, each window's first state is a free
-  parameter, and full-batch LBFGS runs in rounds of ``eval_every`` iterations, the Cauchy scale
-  re-estimated from the current errors at the start of each round;
+  parameter (in units of the network's state normalisation ``x_scale``), and full-batch LBFGS runs
+  in rounds of ``eval_every`` iterations, the Cauchy scale re-estimated from the current errors at
+  the start of each round;
 * ``optimizer="adam"`` (SUBNET's scheme): windows start anywhere, each window's first state comes
   from an **encoder** (an MLP of the ``encoder_lags`` outputs and inputs before it, trained
   jointly), and Adam runs over minibatches of windows with a cosine-decaying step size;
@@ -562,9 +563,13 @@ def _horizons(opt: NeuralFirstStageOptions) -> list[int]:
 
 class _Tiling:
     """Windows of length ``H`` tiling each record's training part (the last one may be shorter: its
-    missing steps have zero input and a missing output), each with a free first state."""
+    missing steps have zero input and a missing output), each with a free first state.
 
-    def __init__(self, problem: _Problem, H: int) -> None:
+    The free parameters are the first states in units of ``state_scale`` (``x = z * state_scale``),
+    so that LBFGS moves states of different units (a position in mm, a velocity in mm/s) by
+    comparable amounts."""
+
+    def __init__(self, problem: _Problem, H: int, state_scale: Tensor) -> None:
         self.problem, self.H = problem, H
         dev = problem.y.device
         ends = (problem.lengths - problem.n_val).tolist()
@@ -580,11 +585,17 @@ class _Tiling:
         )
         self.first = [self.spans.index((b, 0)) for b in range(problem.B)]
         self.last = {b: max(i for i, s in enumerate(self.spans) if s[0] == b) for b in problem.val_records}
-        self.x = torch.zeros(len(self.spans), problem.nx, dtype=problem.y.dtype, device=dev)
+        self.state_scale = state_scale.to(problem.y)
+        self.z = torch.zeros(len(self.spans), problem.nx, dtype=problem.y.dtype, device=dev)
+
+    @property
+    def x(self) -> Tensor:
+        """The windows' first states ``(n, nx)``."""
+        return self.z * self.state_scale
 
     def start_at(self, states: Tensor) -> None:
-        """The windows' first states ``(n, nx)``, free parameters from now on."""
-        self.x = states.detach().clone().requires_grad_(True)
+        """The windows' first states ``(n, nx)``, free parameters from now on (as ``z``)."""
+        self.z = (states.detach() / self.state_scale).clone().requires_grad_(True)
 
     def errors(self, f, g) -> tuple[Tensor, Tensor]:
         """Scaled output errors of the windows' simulations ``(n, H, p)`` and where ``y`` is observed."""
@@ -611,7 +622,7 @@ class _LBFGSRun:
 
     def __init__(self, f, g, tiling: _Tiling, scale: Tensor | None, per_round: int) -> None:
         self.f, self.g, self.tiling, self.scale = f, g, tiling, scale
-        self.params = _free_params(f, g) + [tiling.x]
+        self.params = _free_params(f, g) + [tiling.z]
         with torch.no_grad():
             self.start = self.loss()
         size = 1e6 * (1.0 + abs(self.start)) if math.isfinite(self.start) else 1e30
@@ -677,6 +688,7 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
     per_round, patience = opt.eval_every or 25, opt.patience or LBFGS_PATIENCE
     first_states = torch.zeros(problem.B, problem.nx, dtype=problem.y.dtype, device=problem.y.device)
     best = _Best((f, g), first_states)
+    state_scale = _network_state_scale(f, problem.nx).to(problem.y)
     with torch.no_grad():
         x0 = model.per_sequence("x0_mean", problem.B).to(problem.y)
         simulated = _simulate_states(f, x0, problem.u.transpose(0, 1))
@@ -684,7 +696,7 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
     known = None  # the previous phase's fitted window states by (record, start)
     iterations, stop, n_windows, scale = 0, "max_iter", 0, None
     for H in _horizons(opt):
-        tiling = _Tiling(problem, H)
+        tiling = _Tiling(problem, H, state_scale)
         if known is None:
             tiling.start_at(simulated[tiling.rec, tiling.k0])
         else:
@@ -727,6 +739,26 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
     if math.isfinite(best.score):
         best.restore()
     return best, first_states.clone(), n_windows, stop, iterations
+
+
+def _network_state_scale(f: nn.Module, nx: int) -> Tensor:
+    """The spread of each state that the network in ``f`` is normalised by: the ``x_scale`` of the
+    first submodule of ``f`` (itself included) holding finite positive ``x_scale`` of ``nx`` entries
+    (:class:`~torch_nssm.neural.MLPTransition` and the other neural blocks), ones if none does.
+
+    LBFGS moves the windows' first states in these units: in raw units a state whose spread is
+    100 times another's (a velocity in mm/s beside a position in mm) has a gradient 100 times
+    smaller per unit and a curvature 10,000 times smaller, and LBFGS barely moves it."""
+    for module in f.modules():
+        scale = getattr(module, "x_scale", None)
+        if (
+            isinstance(scale, Tensor)
+            and tuple(scale.shape) == (nx,)
+            and bool(torch.isfinite(scale).all())
+            and bool((scale > 0).all())
+        ):
+            return scale.detach().clone()
+    return torch.ones(nx, dtype=torch.float64)
 
 
 def _simulate_states(f: nn.Module, x: Tensor, u: Tensor) -> Tensor:
