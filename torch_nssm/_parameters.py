@@ -19,7 +19,7 @@ from torch import nn
 
 from . import _validation as V
 from .core.noise import NOISE_SHORTCUTS, NoiseSpec, noise_spec
-from .estimation.estep import EStepOptions
+from .estimation.estep import EStepOptions, auto_segment_length
 from .estimation.loop import EMOptions
 from .estimation.mstep import MStepOptions
 from .estimation.runs import EMRunner
@@ -35,6 +35,8 @@ __all__ = [
     "start_settings",
     "em_runner",
     "report_settings",
+    "resolved_segment_length",
+    "segment_length_of",
 ]
 
 Check = Callable[[object, str, object], None]
@@ -67,11 +69,18 @@ def optional(check: Check) -> Check:
 
 def acceleration(value, name: str, estimator) -> None:
     V.check_choice(value, name, ["newton", "squarem"])
-    if value == "newton" and estimator.segment_length is not None:
+    if value == "newton" and estimator.segment_length not in (None, "auto"):
         raise ValueError(
-            "acceleration='newton' needs the exact E-step: set segment_length=None (the "
+            "acceleration='newton' needs the exact E-step: set segment_length=None or 'auto' (the "
             "observed information is not computed from the windows of a segmented E-step)"
         )
+
+
+def segment_length(value, name: str, _) -> None:
+    if isinstance(value, str) and value != "auto":
+        raise ValueError(f"{name} must be a positive integer, 'auto' or None, got {value!r}")
+    if value is not None and value != "auto":
+        integer(1)(value, name, _)
 
 
 def bool_or_auto(value, name: str, _) -> None:
@@ -144,7 +153,7 @@ PARAMETER_CHECKS: dict[str, Check] = {
     "warm_start": boolean,
     "ess_threshold": unit_interval,
     "chunk_size": optional(integer(1)),
-    "segment_length": optional(integer(1)),
+    "segment_length": segment_length,
     "segment_overlap": integer(1),
     "smoother_options": optional(options_of_smoother),
     "dtype": dtype,
@@ -186,7 +195,7 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
             smoother_options=smoother_opts,
             resampling=estimator.resampling,
             ess_threshold=estimator.ess_threshold,
-            segment_length=estimator.segment_length,
+            segment_length=segment_length_of(estimator),
             segment_overlap=estimator.segment_overlap,
         ),
         mstep=MStepOptions(
@@ -204,6 +213,25 @@ def em_options(estimator, progress: str | None = None, fit_Rw: bool | None = Non
         ),
         progress=progress if estimator.verbose else None,
     )
+
+
+def segment_length_of(estimator) -> int | None:
+    """The time-parallel E-step's window length: ``segment_length``, or for ``"auto"`` what the
+    last fit chose from its records (``segment_length_``; ``None`` before a fit)."""
+    if estimator.segment_length == "auto":
+        return estimator.__dict__.get("segment_length_")
+    return estimator.segment_length
+
+
+def resolved_segment_length(estimator, data) -> int | None:
+    """``segment_length`` for a fit of ``data``: ``"auto"`` cuts records of at least ten windows of
+    ten times ``segment_overlap`` (:func:`~torch_nssm.estimation.estep.auto_segment_length`), except
+    for ``acceleration="newton"``, which needs the exact pass."""
+    if estimator.segment_length != "auto":
+        return estimator.segment_length
+    if estimator.acceleration == "newton":
+        return None
+    return auto_segment_length(int(data.lengths.max()), estimator.segment_overlap)
 
 
 def start_settings(estimator, warm: bool) -> StartSettings:

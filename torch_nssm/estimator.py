@@ -21,7 +21,14 @@ from torch import nn
 from . import _validation as V
 from ._model_state import ModelState
 from ._module_params import ModuleParams
-from ._parameters import check_parameters, em_options, em_runner, report_settings, start_settings
+from ._parameters import (
+    check_parameters,
+    em_options,
+    em_runner,
+    report_settings,
+    resolved_segment_length,
+    start_settings,
+)
 from ._threads import with_thread_limit
 from .core.noise import NoiseSpec
 from .diagnostics import fit_warnings
@@ -202,12 +209,15 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     smoother_options : dict, optional
         Keyword options of the chosen smoother (e.g. ``{"kernel_dtype": torch.float64}`` for
         ``"ffbsm"``, ``{"mcmc_steps": 2}`` or ``{"n_trajectories": 500}`` for ``"mcmc"``).
-    segment_length : int, optional
+    segment_length : int, "auto" or None, default="auto"
         Time-parallel E-step for long records: each record longer than this is cut into windows
         owning ``segment_length`` samples, with ``segment_overlap`` samples of burn-in before and
         look-ahead after, all filtered and smoothed as one batch; each window starts from the
-        previous iteration's filter prediction at its first sample.  ``None`` (default): one exact
-        pass.  A few hundred to a few thousand samples; see docs/design.md ("Long records").
+        previous iteration's filter prediction at its first sample.  ``None``: one exact pass.
+        ``"auto"``: windows of ``10 * segment_overlap`` samples for a fit whose longest record
+        holds at least ten of them (10,000 samples by default), else the exact pass;
+        ``segment_length_`` says what the fit used.  A few hundred to a few thousand samples;
+        see docs/design.md ("Long records").
     segment_overlap : int, default=100
         Burn-in and look-ahead of each window: longer than the system's memory (its slowest time
         constant, in samples) and than the smoother's useful look-ahead.
@@ -265,6 +275,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     simulation_model_ : bool
         Whether EM kept the first stage's ``f`` and ``g`` and estimated the noise around them (a
         simulation model with ``focus="simulation"``).
+    segment_length_ : int or None
+        The window length of the fit's time-parallel E-step (``None``: the exact pass).
     init_log_likelihoods_ : ndarray of shape (n_init,)
         Final log-likelihood estimate of each run (``-inf`` for a run stopped by a
         :class:`~torch_nssm.NumericalError`).
@@ -321,7 +333,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         ess_threshold: float = 1.0,
         chunk_size: int | None = None,
         smoother_options: dict | None = None,
-        segment_length: int | None = None,
+        segment_length: int | str | None = "auto",
         segment_overlap: int = 100,
         random_state=None,
         n_threads: int | None = 1,
@@ -424,6 +436,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         if not warm:
             self.first_stage_ = start.first_stage
         fit_warnings.warn_start(start, stacklevel=3)
+        self.segment_length_ = resolved_segment_length(self, data)
         runner = em_runner(self, device, warm, start)
         if start.interrupted:  # Ctrl-C in the first stage: its best stage, evaluated, and no EM
             runner, start.seeds = runner.without_iterations(), start.seeds[:1]

@@ -91,10 +91,10 @@ def fit_independent(
 
 
 def _check_study_settings(estimator) -> None:
-    if estimator.segment_length is not None:
+    if estimator.segment_length not in (None, "auto"):
         raise ValueError(
             "segment_length applies to fit (one model for all records); fit_independent runs each data "
-            "set whole: set segment_length=None"
+            "set whole: set segment_length=None or 'auto'"
         )
     if estimator.acceleration == "newton":
         raise ValueError(
@@ -155,12 +155,14 @@ def _fit_chunk(
         all_data = SequenceBatch.from_sequences([d.u[:, 0] for d in datas], [d.y[:, 0] for d in datas])
         n = len(indices)
         options = em_options(estimator, f"robust EM x{n}")
+        options.estep.segment_length = None  # whole data sets, batched ("auto" included)
         options.progress = f"robust EM x{n}" if progress else None
         streams = SequenceStreams([sequence_seed(entropy, b) for b in indices], device)
         options.mstep.solver.generator = streams  # each data set's minibatch orders from its stream
         results = run_em(models, all_data, options, streams, shared=False)
     outcomes = []
     for j, (est_b, run) in enumerate(zip(estimators, results)):
+        est_b.segment_length_ = None
         if run.estep is not None:
             # the stored E-step is padded like the batch (lengths kept)
             est_b._store(

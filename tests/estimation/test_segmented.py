@@ -213,3 +213,50 @@ def test_segmented_smoothing_of_a_new_record_with_its_own_first_state():
         assert np.sqrt(np.mean((sm.mean[:, 0] - new.x[:, 0]) ** 2)) < 0.6
     two = est.smooth([new.u, data.u], [new.y, data.y], x0=[[float(new.x[0, 0])], [float(data.x[0, 0])]])
     assert [s.mean.shape for s in two] == [(900, 1), (1200, 1)]
+
+
+def test_auto_cuts_records_of_ten_windows_of_ten_overlaps():
+    from torch_nssm.estimation.estep import auto_segment_length
+
+    assert auto_segment_length(9_999, 100) is None
+    assert auto_segment_length(10_000, 100) == 1000
+    assert auto_segment_length(4_999, 50) is None and auto_segment_length(5_000, 50) == 500
+
+
+def test_segment_length_auto_cuts_a_long_record_and_says_so():
+    """The default ``segment_length="auto"``: a record of 10,000 samples runs the time-parallel
+    E-step with windows of 1,000 (``segment_length_``), the same fit as ``segment_length=1000``;
+    a shorter record, ``None`` or ``acceleration="newton"`` keep the exact pass."""
+    from sklearn.base import clone
+
+    from torch_nssm._parameters import resolved_segment_length
+
+    data = make_paper_example(n_samples=10_000, random_state=2)
+    short = make_paper_example(n_samples=600, random_state=2)
+
+    def fitted(u, y, **kw):
+        est = RobustNSSMEstimator(
+            PaperTransition(), PaperObservation(), x0_mean=[0.0], n_particles=20, n_iter=2, tol=0,
+            first_stage=None, random_state=0, **kw,
+        )  # fmt: skip
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return est.fit(u, y)
+
+    auto = fitted(data.u, data.y)
+    assert RobustNSSMEstimator(PaperTransition(), PaperObservation()).segment_length == "auto"
+    assert auto.segment_length_ == 1000
+    explicit = fitted(data.u, data.y, segment_length=1000)
+    np.testing.assert_array_equal(auto.history_["log_likelihood"], explicit.history_["log_likelihood"])
+    exact = fitted(short.u, short.y)
+    assert exact.segment_length_ is None
+    again = fitted(short.u, short.y, segment_length=None)
+    np.testing.assert_array_equal(exact.history_["log_likelihood"], again.history_["log_likelihood"])
+    est = RobustNSSMEstimator(PaperTransition(), PaperObservation(), x0_mean=[0.0], segment_length="yes")
+    with pytest.raises(ValueError, match="segment_length must be a positive integer, 'auto' or None"):
+        est.fit(short.u, short.y)
+    # Newton steps need the exact pass: "auto" gives it to them
+    newton = RobustNSSMEstimator(PaperTransition(), PaperObservation(), acceleration="newton")
+    batch = _batch([data.u], [data.y])
+    assert resolved_segment_length(newton, batch) is None
+    assert resolved_segment_length(clone(newton).set_params(acceleration=None), batch) == 1000

@@ -23,6 +23,7 @@ from ..inference.windows import Windows, cut
 __all__ = [
     "EStepOutput",
     "EStepOptions",
+    "auto_segment_length",
     "e_step",
     "segmented_e_step",
     "to_records",
@@ -84,6 +85,24 @@ class EStepOptions:
     ess_threshold: float = 1.0
     segment_length: int | None = None
     segment_overlap: int = 100
+
+
+#: ``segment_length="auto"``: windows own this many times ``segment_overlap`` samples (the useful
+#: range of docs/design.md, "Long records": the arithmetic grows as ``(S + 2 O) / S``) ...
+AUTO_SEGMENT_FACTOR = 10
+
+#: ... and a record is cut only when it holds at least this many such windows.  One record runs
+#: one time step at a time, each step a fixed number of small operations whose dispatch dominates
+#: below a few hundred particles; the windows run as one batch in ``S + 2 O`` steps.
+AUTO_SEGMENT_MIN_WINDOWS = 10
+
+
+def auto_segment_length(longest: int, overlap: int) -> int | None:
+    """The time-parallel E-step's window length that ``segment_length="auto"`` gives a fit whose
+    longest record has ``longest`` samples: ``AUTO_SEGMENT_FACTOR * overlap`` when the record holds
+    at least :data:`AUTO_SEGMENT_MIN_WINDOWS` of them, else ``None`` (one exact pass)."""
+    length = AUTO_SEGMENT_FACTOR * int(overlap)
+    return length if int(longest) >= AUTO_SEGMENT_MIN_WINDOWS * length else None
 
 
 def latent_scales(
