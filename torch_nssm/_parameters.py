@@ -77,10 +77,11 @@ def acceleration(value, name: str, estimator) -> None:
 
 
 def segment_length(value, name: str, _) -> None:
-    if isinstance(value, str) and value != "auto":
+    if value is None or (isinstance(value, str) and value == "auto"):
+        return
+    if isinstance(value, str):
         raise ValueError(f"{name} must be a positive integer, 'auto' or None, got {value!r}")
-    if value is not None and value != "auto":
-        integer(1)(value, name, _)
+    integer(1)(value, name, _)
 
 
 def bool_or_auto(value, name: str, _) -> None:

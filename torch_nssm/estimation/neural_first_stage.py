@@ -585,7 +585,7 @@ class _Tiling:
         )
         self.first = [self.spans.index((b, 0)) for b in range(problem.B)]
         self.last = {b: max(i for i, s in enumerate(self.spans) if s[0] == b) for b in problem.val_records}
-        self.state_scale = state_scale.to(problem.y)
+        self.state_scale = state_scale
         self.z = torch.zeros(len(self.spans), problem.nx, dtype=problem.y.dtype, device=dev)
 
     @property
