@@ -210,6 +210,7 @@ def run_plant(
     row: dict[str, Any] = {
         "plant": name, "data": label, "outlier_fraction": fraction, "n_train": n, "n_validation": n_val,
         "unit": plant.unit, "options": opts, "budget": budget, "clock": clock, "quick": quick,
+        "seed": random_state,
         "truth": {"params": dict(plant.true), "Rw_diag": np.diag(data.params["Rw"]).tolist(),
                   "Rv_diag": np.diag(data.params["Rv"]).tolist()},
         "start": dict(plant.start), "x0_guess": data.x0_guess.tolist(),
@@ -355,8 +356,9 @@ def markdown_table(rows: list[dict]) -> str:
             if ours["n_outliers"]:
                 flagged = f"{ours['flagged_outliers']}/{ours['n_outliers']} {flagged}"
         true_cell = "-" if sb else _g(r["true_model"]["rmse"])
+        data = r["data"] + (f", seed {r['seed']}" if r.get("seed") else "")
         lines.append(
-            f"| {r['plant']} | {r['data']} | {oe_cells[0]} | {oe_cells[1]} | {true_cell} | {ours_cell} | "
+            f"| {r['plant']} | {data} | {oe_cells[0]} | {oe_cells[1]} | {true_cell} | {ours_cell} | "
             f"{_g(r['ratio_ours_oe_linear'], 2)} ({_g(r.get('ratio_known_x0'), 2)}) | "
             f"{ours.get('n_iter', '-')} | {_g(ours.get('dof'), 2)} | "
             f"{flagged} | {'; '.join(_notes(ours))} |"
@@ -410,22 +412,27 @@ def run_suite(
     quick: bool = False,
     out: str | None = None,
     verbose: bool = True,
+    seeds: list[int] | None = None,
 ) -> list[dict]:
-    """Every plant and outlier setting, one after the other; the rows (also written to ``out``
-    after each row, as JSON)."""
+    """Every plant, outlier setting and data seed (``seeds``, default ``[0]``: the simulated
+    records' draws; Silverbox runs seed 0 only), one after the other; the rows (also written to
+    ``out`` after each row, as JSON)."""
     rows = []
     for name in plants or list(PLANT_NAMES):
+        plant_seeds = [0] if name == "silverbox" else (seeds or [0])
         for setting in _settings_for(name, outliers, quick):
             try:
-                row = run_plant(
-                    name, setting, options, budget=budget, clock=clock, quick=quick, verbose=verbose
-                )
+                for seed in plant_seeds:
+                    row = run_plant(
+                        name, setting, options, budget=budget, clock=clock, quick=quick, verbose=verbose,
+                        random_state=seed,
+                    )
+                    rows.append(row)
+                    if out:
+                        Path(out).write_text(json.dumps({"rows": [_jsonable(r) for r in rows]}, indent=1))
             except FileNotFoundError as exc:  # the Silverbox data are not here
                 print(f"[{name}] skipped: {exc}", file=sys.stderr, flush=True)
                 break
-            rows.append(row)
-            if out:
-                Path(out).write_text(json.dumps({"rows": [_jsonable(r) for r in rows]}, indent=1))
     return rows
 
 
@@ -458,6 +465,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
         "machine shared with other jobs)",
     )
     parser.add_argument("--quick", action="store_true", help="short records, few iterations (smoke run)")
+    parser.add_argument(
+        "--seeds", default="0",
+        help="comma-separated seeds of the simulated records' draws (default 0; Silverbox: 0 only)",
+    )
     parser.add_argument("--estimator-options", default="{}", help="JSON keyword arguments for our estimator")
     parser.add_argument("--out", default=None, help="write the rows as JSON here")
     parser.add_argument(
@@ -484,10 +495,15 @@ def main(argv: list[str] | None = None) -> list[dict]:
         parser.error(f"--estimator-options is not JSON: {exc}")
     if not isinstance(options, dict):
         parser.error("--estimator-options must be a JSON object")
+    try:
+        seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
+    except ValueError:
+        parser.error(f"--seeds must be comma-separated integers, got {args.seeds!r}")
     torch.set_num_threads(1)
     t0 = time.perf_counter()
     rows = run_suite(
-        plants, outliers, options, budget=args.budget, clock=args.budget_clock, quick=args.quick, out=args.out
+        plants, outliers, options, budget=args.budget, clock=args.budget_clock, quick=args.quick,
+        out=args.out, seeds=seeds,
     )
     print(markdown_table(rows))
     print()

@@ -368,6 +368,19 @@ def _links(spans: list[tuple[int, int, int]], x0: Tensor) -> Links | None:
     return Links(torch.as_tensor(linked, device=x0.device), CONTINUITY * spread)
 
 
+#: The first Levenberg-Marquardt step's damping (Marquardt's scaling) of a stage whose windows cover
+#: each record (or are :data:`DIRECT_HORIZON` long) and start from the user's start: the direct
+#: track, or ``horizons=None``.  That is the output-error problem with its many local minima, 30-50
+#: % from its minimum; a nearly Gauss-Newton first step there jumps a slow plant into another basin
+#: (the suite's tanks on seeds 1, 4, 6, 7: the direct fit's free run 5-90 times worse than scipy's
+#: output-error least squares from the same start); damped by 1 it reaches that basin
+#: (benchmarks/README.md, "The direct track's first step").  The continuation's first windows are
+#: short (nearly convex: there the Gauss-Newton step is what reaches the basin, e.g. the paper's
+#: example from a = b = c = 0.5 in windows of 50), its later stages and the rescaled passes start at
+#: the last result: :data:`WARM_DAMPING`, as the M-step's Gauss-Newton.
+COLD_DAMPING = 1.0
+WARM_DAMPING = 1e-3
+
 #: A stage's Levenberg-Marquardt run starts again from its result with the robust scale of its
 #: residuals when that scale fell below the scale used by this factor (on some output), at most
 #: SCALE_PASSES runs in all.  The first run's scale is that of the stage's starting errors: far from
@@ -386,10 +399,12 @@ def _fit_stage(
     x0: Tensor,
     max_iter: int,
     loss: str,
+    cold: bool = False,
 ):
     """Levenberg-Marquardt over one stage's windows, consecutive windows softly continuous; the
     robust scale of the output errors fixed at the stage's start (per output), and renewed from the
-    result while it shrinks by :data:`SCALE_SHRINK` (:data:`SCALE_PASSES` runs at most)."""
+    result while it shrinks by :data:`SCALE_SHRINK` (:data:`SCALE_PASSES` runs at most).  ``cold``: a
+    stage of long windows from the start (its first run damped by :data:`COLD_DAMPING`)."""
     ones = torch.ones(windows.y.shape[-1], dtype=x0.dtype, device=x0.device)
     unscaled = _Shooting(params, windows, ones)
     mask = unscaled.mask.transpose(0, 1)
@@ -404,7 +419,8 @@ def _fit_stage(
     for run in range(SCALE_PASSES):
         problem = _Shooting(params, windows, scale)
         result = levenberg_marquardt(
-            problem, theta, x0, problem.weight, loss=loss, links=links, max_iter=max_iter, ftol=STAGE_FTOL
+            problem, theta, x0, problem.weight, loss=loss, links=links, max_iter=max_iter, ftol=STAGE_FTOL,
+            damping=COLD_DAMPING if cold and run == 0 else WARM_DAMPING,
         )
         initial = result.initial_objective if initial is None else initial
         iterations += result.n_iter
@@ -525,6 +541,8 @@ class _Ladder:
         self.judged0, self.rmse0 = _judge(errors, self.y_scale), _rmse(errors)
         self.theta0 = params.vector()
         self.best = (self.judged0, self.theta0, None, None, None, errors)
+        # windows this long from the start are an output-error fit: damped first (COLD_DAMPING)
+        self.long_window = min(int(data.lengths.max()), DIRECT_HORIZON)
 
     def run(self, plan: list[int], report: FirstStageReport, track: str, early_stop: bool) -> None:
         theta, previous, stale = self.params.vector(), None, 0
@@ -537,7 +555,10 @@ class _Ladder:
             else:
                 x0 = _continued_states(previous, spans, theta)
             try:
-                result, problem = _fit_stage(self.params, theta, spans, windows, x0, self.max_iter, self.loss)
+                result, problem = _fit_stage(
+                    self.params, theta, spans, windows, x0, self.max_iter, self.loss,
+                    cold=previous is None and horizon >= self.long_window,
+                )
             except (RuntimeError, torch.linalg.LinAlgError) as exc:  # a module that fails on the way
                 report.horizon_limit = f"the fit over windows of {horizon} samples failed ({exc})"
                 return

@@ -253,6 +253,12 @@ def _step(
     return dg, dl, float(predicted)
 
 
+#: The small-decrease and small-step stops of :func:`levenberg_marquardt` count once a step has been
+#: accepted at a damping no larger than this (a nearly Gauss-Newton step): a run started heavily
+#: damped (a far start) otherwise stops after its first, deliberately short step.
+SETTLED_DAMPING = 1e-2
+
+
 def levenberg_marquardt(
     residuals: Residuals,
     theta: Tensor,
@@ -264,6 +270,7 @@ def levenberg_marquardt(
     max_iter: int = 50,
     ftol: float = 1e-8,
     xtol: float = 1e-8,
+    damping: float = 1e-3,
 ) -> LeastSquaresResult:
     """Minimise ``sum w rho(r^2)`` (plus the continuity residuals of ``links``) over ``theta``
     (shared) and ``local`` (per window).
@@ -287,6 +294,12 @@ def levenberg_marquardt(
     ftol, xtol : float
         Stop when an accepted step lowers the objective by less than ``ftol`` relatively, or
         moves every variable by less than ``xtol`` relatively.
+    damping : float
+        The first step's damping ``lambda`` (Marquardt's scaling: ``lambda`` times the diagonal of
+        the normal equations is added to them).  Small (1e-3): the first step is nearly
+        Gauss-Newton's, right for a start near the minimum (the M-step); about 1 for a start far
+        from it, where a full Gauss-Newton step can jump into another basin (the ``ftol`` and
+        ``xtol`` stops then wait until the damping has come down to :data:`SETTLED_DAMPING`).
 
     Returns
     -------
@@ -304,7 +317,10 @@ def levenberg_marquardt(
     F0 = F
     if not math.isfinite(F):
         return LeastSquaresResult(theta, local, F, F0, 0, n_eval, "not_finite")
-    lam, nu = 1e-3, 2.0
+    lam, nu = float(damping), 2.0
+    # a heavily damped step makes little progress by design: the small-step stops count once a step
+    # has been taken at nearly Gauss-Newton damping (from the start when the first step is one)
+    settled = lam <= SETTLED_DAMPING
     status, n_iter = "max_iter", 0
     while n_iter < max_iter:
         J = _jacobian(residuals, theta, local)
@@ -325,6 +341,7 @@ def levenberg_marquardt(
             gain = (F - F_new) / (2.0 * predicted) if predicted > 0 else -1.0
             if math.isfinite(F_new) and F_new < F:
                 accepted = True
+                settled = settled or lam <= SETTLED_DAMPING
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * min(gain, 1.0) - 1.0) ** 3) if gain > 0 else 1.0
                 nu = 2.0
                 break
@@ -340,7 +357,7 @@ def levenberg_marquardt(
         scale = torch.cat([theta.abs().reshape(-1), local.abs().reshape(-1)]).clamp_min(1e-8)
         small_x = bool((torch.cat([dg.reshape(-1), dl.reshape(-1)]).abs() <= xtol * scale).all())
         theta, local, F = new_theta, new_local, F_new
-        if small_f or small_x:
+        if settled and (small_f or small_x):
             status = "converged"
             break
     return LeastSquaresResult(theta, local, F, F0, n_iter, n_eval, status)
