@@ -77,7 +77,7 @@ def acceleration(value, name: str, estimator) -> None:
 
 
 def segment_length(value, name: str, _) -> None:
-    if value is None or (isinstance(value, str) and value == "auto"):
+    if value is None or value == "auto":
         return
     if isinstance(value, str):
         raise ValueError(f"{name} must be a positive integer, 'auto' or None, got {value!r}")

@@ -44,9 +44,9 @@ def test_simulation_error_fit_recovers_the_dynamics_despite_outliers(windows):
 
 
 def test_the_direct_fit_from_a_far_start_reaches_the_output_error_basin():
-    """The suite's tanks (seed 1), one window over the record from the physically sized start: a
-    nearly Gauss-Newton first step (damping 1e-3) ended in another basin (free-run judge 0.78,
-    validation RMSE 3.0 cm); damped as a far start is (COLD_DAMPING), the fit reaches the basin of
+    """The suite's tanks (seed 1), one window over the record from the physically sized start: from
+    a nearly Gauss-Newton first step (damping 1e-3) the fit ends in another basin (free-run judge
+    0.78, validation RMSE 3.0 cm); damped as a far start is (COLD_DAMPING), it reaches the basin of
     scipy's output-error least squares from the same start (judge 0.0167, validation 0.21 cm)."""
     d = make_tanks(1024, random_state=1, n_validation=16)
     est = RobustNSSMEstimator(*tanks_model(TANKS_START), x0_mean=np.asarray(d.x0_guess, float).tolist())

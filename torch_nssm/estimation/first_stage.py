@@ -374,10 +374,10 @@ def _links(spans: list[tuple[int, int, int]], x0: Tensor) -> Links | None:
 #: % from its minimum; a nearly Gauss-Newton first step there jumps a slow plant into another basin
 #: (the suite's tanks on seeds 1, 4, 6, 7: the direct fit's free run 5-90 times worse than scipy's
 #: output-error least squares from the same start); damped by 1 it reaches that basin
-#: (benchmarks/README.md, "The direct track's first step").  The continuation's first windows are
-#: short (nearly convex: there the Gauss-Newton step is what reaches the basin, e.g. the paper's
-#: example from a = b = c = 0.5 in windows of 50), its later stages and the rescaled passes start at
-#: the last result: :data:`WARM_DAMPING`, as the M-step's Gauss-Newton.
+#: (benchmarks/README.md, "Seeds, and the direct track's first step").  The continuation's first
+#: windows are short (nearly convex: there the Gauss-Newton step is what reaches the basin, e.g. the
+#: paper's example from a = b = c = 0.5 in windows of 50), its later stages and the rescaled passes
+#: start at the last result: :data:`WARM_DAMPING`, as the M-step's Gauss-Newton.
 COLD_DAMPING = 1.0
 WARM_DAMPING = 1e-3
 
