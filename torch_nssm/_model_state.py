@@ -88,7 +88,7 @@ class ModelState:
         per_component = model.noise.per_component
         ow = outlier_weights(estep.smoother.log_weights, estep.e_lam, data, per_component=per_component)
         self.outlier_weights_ = ow if multi else ow[0]
-        self.outlier_threshold_ = model.noise.outlier_threshold()
+        self.outlier_threshold_ = model.noise.outlier_threshold(ow)
         flags = [np.isfinite(w) & (w < self.outlier_threshold_) for w in ow]
         self.outliers_ = flags if multi else flags[0]
         self.log_likelihood_ = float(estep.log_likelihood.sum())

@@ -263,8 +263,10 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         sample, above 1 a small residual (up to ``(dof + p) / dof``); NaN where ``y_k`` is
         missing; per output for ``"student-t-per-output"``.
     outliers_, outlier_threshold_ : ndarray of bool shaped as ``outlier_weights_``; float or (p,)
-        The flagged samples: weight below ``outlier_threshold_``, ``(dof + p) / (dof + chi2_p(0.999))``
-        for Student-t noise (a residual beyond its Gaussian core's 99.9 % quantile), else 0.5.
+        The flagged samples: weight below ``outlier_threshold_``, for Student-t noise
+        ``(dof + p) / (dof + k chi2_p(0.999))``: a residual beyond the 99.9 % quantile of its
+        Gaussian core, widened by ``k >= 1`` to the median of the samples' own distances
+        (:func:`torch_nssm.core.noise.base.bulk_spread`); else 0.5.
     log_likelihood_ : float
         Particle estimate of the log-likelihood at the fitted parameters.
     first_stage_ : FirstStageReport, NeuralFirstStageReport or None

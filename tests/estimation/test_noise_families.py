@@ -153,16 +153,25 @@ def test_joint_vs_per_output_long_run():
 
 
 def test_outlier_flags_follow_the_gaussian_core(record, joint, per_output):
-    """``outliers_`` flags a weight below ``(dof + p) / (dof + chi2_p(0.999))``: the weight of a
-    residual that the noise's Gaussian core exceeds once in a thousand samples (joint: one
-    threshold for both outputs; per output: one per output, each with p = 1)."""
+    """``outliers_`` flags a weight below ``(dof + p) / (dof + k chi2_p(0.999))``: the weight of a
+    residual that the noise's Gaussian core, widened by ``k >= 1`` to the bulk of the samples'
+    distances, exceeds once in a thousand samples (joint: one threshold for both outputs; per
+    output: one per output, each with p = 1)."""
+    from torch_nssm.core.noise.base import bulk_spread
+
     _, _, glitch = record
     nu = joint.dof_
-    assert joint.outlier_threshold_ == pytest.approx((nu + 2) / (nu + stats.chi2.ppf(0.999, 2)), rel=1e-12)
+    k = bulk_spread(joint.outlier_weights_, nu, 2)
+    assert k >= 1.0
+    expected = (nu + 2) / (nu + k * stats.chi2.ppf(0.999, 2))
+    assert joint.outlier_threshold_ == pytest.approx(expected, rel=1e-12)
     np.testing.assert_array_equal(joint.outliers_, joint.outlier_weights_ < joint.outlier_threshold_)
     assert per_output.outlier_threshold_.shape == (2,)
+    k = bulk_spread(per_output.outlier_weights_, per_output.dof_, 1)
+    assert k.shape == (2,) and np.all(k >= 1.0)
     np.testing.assert_allclose(
-        per_output.outlier_threshold_, (per_output.dof_ + 1) / (per_output.dof_ + stats.chi2.ppf(0.999, 1)),
+        per_output.outlier_threshold_,
+        (per_output.dof_ + 1) / (per_output.dof_ + k * stats.chi2.ppf(0.999, 1)),
         rtol=1e-12,
     )
     np.testing.assert_array_equal(
@@ -171,6 +180,28 @@ def test_outlier_flags_follow_the_gaussian_core(record, joint, per_output):
     # the glitches of output 1 are flagged there, output 2 (clean) keeps its samples
     assert per_output.outliers_[glitch, 0].mean() > 0.5
     assert per_output.outliers_[~glitch, 1].mean() < 0.02
+
+
+def test_the_core_is_widened_to_the_bulk_of_the_samples():
+    """Samples whose distances from a Student-t of dof 0.7 spread twice its scale (a t that gross
+    outliers made heavy-tailed): the core is widened by about 4 (in squared distance), so a regular
+    sample at 3.3 scales is not flagged; samples spread as the t's own core leave it at 1; per
+    column, missing samples ignored."""
+    from torch_nssm.core.noise.base import bulk_spread, core_outlier_threshold
+
+    rng = np.random.default_rng(0)
+    nu = 0.7
+    wide = 4.0 * rng.chisquare(1, 20_000)
+    own = rng.chisquare(1, 20_000) * 0.5
+    w = np.stack([(nu + 1) / (nu + wide), (nu + 1) / (nu + own)], axis=1)
+    w[:100, 0] = np.nan
+    k = bulk_spread([w[:5000], w[5000:]], np.array([nu, nu]), 1)
+    assert k[0] == pytest.approx(4.0, rel=0.05) and k[1] == 1.0
+    t = core_outlier_threshold(np.array([nu, nu]), 1, [w])
+    regular = (nu + 1) / (nu + 3.3**2)  # a residual of 3.3 scales
+    assert regular < core_outlier_threshold(nu, 1)  # flagged by the t's own core
+    assert regular > t[0]  # not by the widened one
+    assert t[1] == pytest.approx(float(core_outlier_threshold(nu, 1)))
 
 
 def test_gaussian_noise_flags_nothing(record):

@@ -80,13 +80,15 @@ def test_robust_compare_leaves_out_the_outliers(fitted):
     left_out = robust.excluded.reshape(-1)
     assert robust.robust == f"smoothed outlier weight < {float(est.outlier_threshold_):.2g}"
     assert 0.0 < est.outlier_threshold_ < 0.5  # dof 1.4: a weight below 0.5 is a residual of 1.8 scales
-    # the left-out samples are mostly the glitches: 80 % of the injected outliers (the rest are as
-    # small as the noise) and 10 % of the regular samples (the fitted Student-t has dof 1.4)
-    assert left_out[data.outlier_mask].mean() >= 0.6
-    assert left_out[~data.outlier_mask].mean() <= 0.2
+    # the left-out samples are the glitches: 8 of the 15 injected outliers (the others, drawn
+    # uniformly in [-5, 5], lie within the noise's spread of the output) and none of the regular
+    # samples (the core of the fitted Student-t of dof 1.4 widened to the samples' bulk; its own
+    # core left out 10 of the 15 and 1 regular sample, for a robust fit of 14.2 against 16.5 %)
+    assert left_out[data.outlier_mask].mean() >= 0.5
+    assert left_out[~data.outlier_mask].mean() <= 0.02
     kept = np.where(robust.excluded, np.nan, data.y)
     np.testing.assert_allclose(robust.fit, fit_percent(kept, plain.y_pred))
-    assert robust.fit[0] > plain.fit[0] + 2.0  # 15.0 against 9.5 %
+    assert robust.fit[0] > plain.fit[0] + 2.0  # 16.5 against 9.4 %
     assert "left out" in str(robust)
 
 

@@ -306,8 +306,8 @@ class StudentTNoise(JointScaleNoise):
     def absorption_message(self, weights) -> str | None:
         return absorbing_message(self.attributes()["dof"], weights)
 
-    def outlier_threshold(self) -> np.ndarray:
-        return core_outlier_threshold(self.attributes()["dof"], self.n_outputs)
+    def outlier_threshold(self, weights=None) -> np.ndarray:
+        return core_outlier_threshold(self.attributes()["dof"], self.n_outputs, weights)
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _StudentTEvaluator:
         dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B)

@@ -163,8 +163,8 @@ class StudentTPerOutputNoise(MeasurementNoise):
     def absorption_message(self, weights) -> str | None:
         return absorbing_message(self.attributes()["dof"], weights)
 
-    def outlier_threshold(self) -> np.ndarray:
-        return core_outlier_threshold(self.attributes()["dof"], 1)  # one per output
+    def outlier_threshold(self, weights=None) -> np.ndarray:
+        return core_outlier_threshold(self.attributes()["dof"], 1, weights)  # one per output
 
     def evaluator(self, scale: MaskedScale, n_particles: int) -> _PerOutputEvaluator:
         dof = self.per_sequence("dof", scale.logdet.shape[1]).unsqueeze(0)  # (1, B, p)
