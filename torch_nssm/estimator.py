@@ -139,7 +139,7 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     tol : float, default=1e-3
         EM with particles is stochastic: it has converged when, over the last 5 iterations, neither
         the log-likelihood estimate (by more than ``tol`` per observation and iteration) nor any
-        parameter (beyond a relative ``max(tol, 1e-4)``, or half a standard error for the noise
+        parameter (beyond a relative ``max(tol, 1e-4)``, or a standard error for the noise
         parameters) drifts more than its iteration-to-iteration jitter explains
         (:func:`torch_nssm.estimation.convergence.has_converged`).  ``0`` runs all ``n_iter``
         iterations without a :class:`~sklearn.exceptions.ConvergenceWarning`.

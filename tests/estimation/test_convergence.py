@@ -43,8 +43,8 @@ def test_em_rate_is_the_ratio_of_successive_steps():
 
 def test_a_noise_variance_creeping_within_its_observed_standard_error_has_converged():
     # a small process noise creeping 1 % an iteration (the oscillator's velocity noise after its
-    # climb): 5 % over the window, twice half its complete-data standard error at 3,000 samples
-    # (2.6 %), well within half the observed one (EM's rate near 1: the states hold little of it)
+    # climb): 5 % over the window, twice its complete-data standard error at 3,000 samples (2.6 %),
+    # well within the observed one (EM's rate near 1: the states hold little of it)
     n, rw = 3000, {"Rw": np.array([np.sqrt(2 / 3000)])}
     slow = {**_history(8), "Rw": [np.array([[0.012 * 0.99**k]]) for k in range(8)]}
     fast = {**_history(8), "Rw": [np.array([[0.012 * 0.9**k]]) for k in range(8)]}
