@@ -205,11 +205,12 @@ def run_demo(
     ow = fits["robust"].outlier_weights_
     flagged = fits["robust"].outliers_
     true_out = data.outlier_mask
+    n_regular = int((flagged & ~true_out).sum())
     print(
         f"\nOutliers: {int(flagged.sum())} samples flagged (outlier weight E[lambda|y] < "
         f"{float(fits['robust'].outlier_threshold_):.2f}, est.outliers_); "
         f"{int((flagged & true_out).sum())} of the {int(true_out.sum())} injected ones among them, "
-        f"{int((flagged & ~true_out).sum())} regular samples flagged."
+        f"{n_regular} regular sample{'' if n_regular == 1 else 's'} flagged."
     )
     print(
         f"Median outlier weight: injected outliers {np.median(ow[true_out]):.3f}, "
