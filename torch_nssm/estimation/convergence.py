@@ -11,12 +11,12 @@ relative tolerance.  A parameter creeping towards its maximum (EM's slow linear 
 moves the same way at every iteration, so its net change outgrows its jitter and the run goes on.
 
 The log-likelihood, which EM climbs, must also not move the same way at every step of the window
-(one large step of a climb inflates the steps' standard deviation past the climb: the suite's
-oscillator stopped at 9 iterations, at 8x the true model's error, while its log-likelihood still
-rose by thousands an iteration), and its last estimate must not lie far below the window's (a
-particle filter's log-likelihood estimate has heavy tails: an occasional estimate thousands of
-units low, after which EM recovers over a few iterations).  Measured on the development suite:
-benchmarks/README.md, "When EM stops".
+(one large step of a climb inflates the steps' standard deviation past the climb: by that alone
+the suite's oscillator stops at 9 iterations, at 8x the true model's error, while its
+log-likelihood still rises by thousands an iteration), and its last estimate must not lie far
+below the window's (a particle filter's log-likelihood estimate has heavy tails: an occasional
+estimate thousands of units low, after which EM recovers over a few iterations).  Measured on
+the development suite: benchmarks/README.md, "When EM stops".
 
 The noise parameters are also judged against their standard errors.  The complete-data ones
 (:meth:`~torch_nssm.core.noise.base.MeasurementNoise.convergence_scales`) are too small where the states
@@ -97,9 +97,9 @@ def em_rate(values) -> np.ndarray:
 
 #: A positive parameter with a standard error (the noise family's :meth:`convergence_scales`) has
 #: converged once its net change over the window is below this fraction of it (observed-data:
-#: inflated by EM's rate).  Half of it never let a Wiener-Hammerstein record's process noise
-#: (ten entries, each creeping a few % per window) stop within 100 iterations, for a free run that
-#: is the first stage's; one stops it at 25 and changes no other stop on the suite
+#: inflated by EM's rate).  At half of it a Wiener-Hammerstein record's process noise (ten
+#: entries, each creeping a few % per window) does not stop within 100 iterations, for a free run
+#: that is the first stage's; at one it stops at 25, and no other stop on the suite moves
 #: (benchmarks/README.md, "When EM stops").
 SE_FRACTION = 1.0
 

@@ -425,18 +425,18 @@ def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCa
     if not still:
         return still
     lls = estep.latest.log_likelihood.tolist()
-    fallen, acquitted = [], []
+    fallen, acquitted, n_recheck = [], [], None
     for j, g in enumerate(still):
         ll = sum(lls) if groups.shared else lls[j]
         drop = groups.lls[g][-1] - ll
         limit = max(COLLAPSE_PER_OBS * groups.n_obs[g], COLLAPSE_MIN)
         again = ""
         if drop > limit and groups.shared and estep.options.estep.segment_length is None:
-            n = COLLAPSE_RECHECK_FACTOR * estep.options.n_particles(it + 1)
-            drop = _remeasured_fall(groups.snapshots[g], groups.models[g], estep, n, seed=it + 1)
-            again = f"; measured again with {n} particles: a fall of {drop:.6g}"
+            n_recheck = COLLAPSE_RECHECK_FACTOR * estep.options.n_particles(it + 1)
+            drop = _remeasured_fall(groups.snapshots[g], groups.models[g], estep, n_recheck, seed=it + 1)
+            again = f"; measured again with {n_recheck} particles: a fall of {drop:.6g}"
             if drop <= limit:
-                acquitted.append((g, n))
+                acquitted.append(g)
         if drop > limit:
             fallen.append(g)
             groups.halted[g] = (
@@ -447,15 +447,14 @@ def _halt_on_collapse(groups: _Groups, still: list[int], it: int, estep: EStepCa
                 f"at iteration {it}"
             )
     if acquitted:
-        # the iterate is fine, its E-step's estimate was the outlier: a particle filter's log-likelihood
-        # has heavy tails, and an M-step after such an E-step undid the noise model (the suite's tanks:
-        # dof 7.5 -> 3.0 on clean data, recovered over ~20 iterations; benchmarks/README.md, "When EM
+        # the iterate is fine, its E-step's estimate is the outlier: a particle filter's log-likelihood
+        # has heavy tails, and an M-step after such an E-step undoes the noise model (the suite's tanks:
+        # dof 7.5 -> 3.0 on clean data, ~20 iterations to recover; benchmarks/README.md, "When EM
         # stops").  Its E-step again, with the particles that acquitted it: what the next M-step reads
-        ids = [g for g, _ in acquitted]
-        failure = _attempt(estep, ids, it + 1, n_particles=max(n for _, n in acquitted))
+        failure = _attempt(estep, acquitted, it + 1, n_particles=n_recheck)
         if failure is not None:
-            groups.stop(ids, f"EM stopped at iteration {it + 1}: {failure}")
-            still = [g for g in still if g not in ids]
+            groups.stop(acquitted, f"EM stopped at iteration {it + 1}: {failure}")
+            still = [g for g in still if g not in acquitted]
     if not fallen:
         return still
     for g in fallen:

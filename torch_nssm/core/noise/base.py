@@ -238,13 +238,12 @@ def bulk_spread(weights, dof, p: int) -> np.ndarray:
     weights ``w``) over the median of ``chi2_p``, per column of ``weights`` (pooled over records).
 
     A Student-t of ``dof`` below about 1, which gross outliers call for, has a scale well inside the
-    regular samples' spread, and its core's 99.9 % quantile then flagged 3-13 % of the regular
-    samples of the development suite's records with 5 % outliers (benchmarks/README.md, "Flags");
-    measured from the samples' own median the core is that spread."""
+    regular samples' spread, and its own core's 99.9 % quantile flags 3-13 % of the regular samples
+    of the development suite's records with 5 % outliers (benchmarks/README.md, "Flags"); measured
+    from the samples' own median the core is that spread."""
     from scipy.stats import chi2
 
-    ws = weights if isinstance(weights, list) else [weights]
-    w = np.concatenate([np.asarray(a, dtype=float).reshape(np.shape(a)[0], -1) for a in ws], axis=0)
+    w = np.concatenate(_records(weights), axis=0)
     nu = np.asarray(dof, dtype=float).reshape(-1)
     with np.errstate(invalid="ignore", divide="ignore"):
         d2 = np.clip((nu + p) / w - nu, 0.0, None)
@@ -270,15 +269,20 @@ DOWNWEIGHTED_SHARE = 0.4
 CLUSTER_ODDS = 3.0
 
 
-def _record_columns(weights) -> list[np.ndarray]:
-    """The outlier weights as a list of 1-D time series (one per record and output)."""
+def _records(weights) -> list[np.ndarray]:
+    """The outlier weights (an array, or a list of them, one per record) as one 2-D array per
+    record: samples by outputs (one column for a family with one latent scale per sample)."""
     ws = weights if isinstance(weights, list) else [weights]
     out = []
     for a in ws:
         a = np.asarray(a, dtype=float)
-        a = a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1)
-        out.extend(a[:, j] for j in range(a.shape[1]))
+        out.append(a.reshape(a.shape[0], -1) if a.ndim else a.reshape(1, 1))
     return out
+
+
+def _record_columns(weights) -> list[np.ndarray]:
+    """The outlier weights as a list of 1-D time series (one per record and output)."""
+    return [a[:, j] for a in _records(weights) for j in range(a.shape[1])]
 
 
 def clustering_odds(weights) -> float:
@@ -302,8 +306,7 @@ def clustering_odds(weights) -> float:
 
 def downweighted_share(weights) -> float:
     """Share of the finite outlier ``weights`` (an array or a list of them) below 0.5."""
-    ws = weights if isinstance(weights, list) else [weights]
-    w = np.concatenate([np.asarray(a, dtype=float).reshape(-1) for a in ws])
+    w = np.concatenate([a.reshape(-1) for a in _records(weights)])
     w = w[np.isfinite(w)]
     return float(np.mean(w < 0.5)) if w.size else 0.0
 
