@@ -25,7 +25,7 @@ from ._threads import limited_threads
 from .core.model import SequenceBatch, StateSpaceModel
 from .core.noise import MeasurementNoise, NoiseSpec, symmetric_pd
 from .estimation.estep import e_step, latent_scales, outlier_weights
-from .estimation.start import seeded_generator
+from .estimation.start import seeded_generator, state_spread
 from .inference import prediction
 from .inference.ffbsm import smoothed_moments
 from .inference.filtering import particle_filter
@@ -175,12 +175,17 @@ class ModelState:
 
     def _estimate_initial_states(self, model: StateSpaceModel, data: SequenceBatch, generator) -> tuple:
         """Smoothed distribution of each record's first state given its first ``INITIAL_SAMPLES``
-        outputs, from a broad prior (the fitted prior's covariance times 100, plus ``Rw``)."""
+        outputs, from a broad prior: the fitted prior's covariance times 100, plus ``Rw``, plus
+        the variance of each state along the model's free run of the record (the fitted prior
+        describes the training records' first state, which can pin it far more tightly than a new
+        record's start is known)."""
         if not bool(data.obs_mask.any()):
             raise ValueError("x0='estimate' needs the measured outputs y of the record(s)")
         n = min(data.n_steps, INITIAL_SAMPLES)
         head = SequenceBatch(data.u[:n], data.y[:n], data.lengths.clamp(max=n))
-        broad = replace(model, x0_cov=100.0 * model.x0_cov + model.Rw)
+        wide = 100.0 * model.x0_cov + model.Rw
+        spread = state_spread(replace(model, x0_cov=torch.zeros_like(wide)), data)  # this record's
+        broad = replace(model, x0_cov=wide + spread)
         estep = self._e_step(broad, head, generator)
         mean, cov = smoothed_moments(estep.filter.particles[:1], estep.smoother.log_weights[:1])
         eye = torch.eye(model.state_dim, dtype=cov.dtype, device=cov.device)

@@ -80,7 +80,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
     x0_cov : array-like, optional
         Its covariance ``(nx, nx)`` (a scalar or vector means a diagonal).  If omitted: after a
         kept first stage, the variance of each state along its noise-free simulation (diagonal: a
-        prior on the states' own scale); otherwise the identity.
+        prior on the states' own scale); otherwise the identity.  EM estimates it (with
+        ``fit_x0``; for a simulation model about the first state its first stage fitted).
     Rw_init : array-like, optional
         Initial process-noise covariance.  If omitted: a tenth of the variance of each state's
         change per step along the start's noise-free simulation (diagonal; ``0.1 * I`` where that
@@ -113,7 +114,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         Estimate the measurement-noise scale matrix; if False it stays at ``Rv_init``.
     fit_x0 : bool, default=True
         Re-estimate the initial-state prior from the smoothed first state (its covariance is
-        floored by ``Rw`` so that it cannot collapse on a single record).
+        floored by ``Rw`` so that it cannot collapse on a single record); a simulation model
+        (``simulation_model_``) keeps its first stage's first state and re-estimates the
+        covariance about it.
     n_particles : int, default=200
         Number of particles ``L``.
     n_particles_final : int, optional
@@ -169,11 +172,11 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         What the model is for (MATLAB's ``Focus``).  ``"simulation"``: when the first stage's
         noise-free simulation explains at least 90 % of ``y`` (robust R²: a simulation model), EM
         keeps its ``f``, ``g`` and first state (the robust simulation-error fit simulates best)
-        and estimates the noise around them: the process and measurement noise and the outlier
-        weights (``simulation_model_`` is True).  ``"prediction"``, or a first stage that explains
-        less (the process noise carries much of ``y``): EM estimates ``f`` and ``g`` too, the
-        maximum-likelihood model, whose states may follow ``y`` through the process noise (for
-        filtering and k-step-ahead prediction).
+        and estimates the noise around them: the process and measurement noise, the outlier
+        weights and the first state's spread (``simulation_model_`` is True).
+        ``"prediction"``, or a first stage that explains less (the process noise carries much of
+        ``y``): EM estimates ``f`` and ``g`` too, the maximum-likelihood model, whose states may
+        follow ``y`` through the process noise (for filtering and k-step-ahead prediction).
     warm_start : bool, default=False
         If True and the estimator is fitted, :meth:`fit` continues EM from the fitted parameters
         (``n_iter`` more iterations, one run whatever ``n_init``); ``history_`` is extended.  The
@@ -697,7 +700,8 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         """The first state of a new record, estimated from its first outputs.
 
         A smoothing pass over the first ``INITIAL_SAMPLES`` samples from a broad prior (the fitted
-        prior's covariance times 100, plus ``Rw_``); what ``x0="estimate"`` uses.  The pair goes
+        prior's covariance times 100, plus ``Rw_``, plus each state's variance along the model's
+        free run of this record); what ``x0="estimate"`` uses.  The pair goes
         back in as it is: ``predict(u, x0=est.initial_state(u, y))`` (also ``simulate``,
         ``smooth``, ``filter``, ``score``, ``compare``).
 

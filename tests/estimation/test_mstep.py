@@ -535,6 +535,22 @@ def test_initial_state_update(nonlinear_estep):
     np.testing.assert_allclose(cov.numpy(), want_cov, rtol=1e-10)
 
 
+def test_initial_state_update_about_a_held_mean(nonlinear_estep):
+    """A simulation model's first state is held: the covariance is the second moment about it."""
+    model, data, est = nonlinear_estep
+    floor = 0.01 * torch.eye(2, dtype=DTYPE)
+    held = torch.tensor([0.3, -0.2], dtype=DTYPE)
+    mean, cov = initial_state_update(est, floor, mean=held)
+    w = np.exp(est.smoother.log_weights[0].numpy())  # (B, L)
+    d = est.filter.particles[0].numpy() - held.numpy()
+    want_cov = np.einsum("bl,blp,blq->pq", w, d, d) / d.shape[0] + floor.numpy()
+    np.testing.assert_array_equal(mean.numpy(), held.numpy())
+    np.testing.assert_allclose(cov.numpy(), want_cov, rtol=1e-10)
+    free = initial_state_update(est, floor)[1]
+    # wider than about the smoothed mean, by the held mean's offset
+    assert np.all(np.linalg.eigvalsh(cov.numpy() - free.numpy()) > -1e-12)
+
+
 def _observed_precision(R: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Per-row inverse of R on the observed block of each target row, zero elsewhere."""
     o = (~torch.isnan(target)).to(R.dtype)

@@ -61,8 +61,12 @@ def test_a_simulation_model_keeps_its_f_and_g_and_estimates_the_noise(pendulum):
     assert est.history_["Rv"][0][0, 0] < 0.01 * np.var(pendulum.y)
     for name, true in PENDULUM_TRUE.items():
         assert abs(float(getattr(est.f_, name).detach()) / true - 1) < 0.1
-    # the free run is the first stage's
+    # the free run is the first stage's, from its first state; the prior's spread about that
+    # state is EM's, far narrower than the states' spread over the record (the start's)
     assert est.first_stage_.free_run_scale_after_em == est.first_stage_.free_run_scale_before_em
+    assert not _moved(est.history_, "x0_mean")
+    states = est.smooth(pendulum.u, pendulum.y).mean
+    assert np.all(np.diag(est.x0_cov_) < 0.05 * states.var(0))
 
 
 def test_a_prediction_model_moves_f_and_g(pendulum):

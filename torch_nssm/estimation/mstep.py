@@ -73,8 +73,11 @@ class MStepOptions:
         closed form.
     solver : SolverSettings
         Its iterations, step size, minibatches.
-    fit_Rw, fit_Rv, fit_x0 : bool
-        Whether ``Rw``, ``Rv`` and the initial-state prior are updated.
+    fit_Rw, fit_Rv : bool
+        Whether ``Rw`` and ``Rv`` are updated.
+    fit_x0 : bool or "cov"
+        Whether the initial-state prior is updated; ``"cov"``: its covariance alone, about the
+        mean it has (a simulation model's first state, fitted by the first stage).
     fit_shape : bool
         Whether the measurement noise's other parameters are updated: those its specification
         estimates (e.g. the Student-t's ``dof`` with ``fit_dof``); False holds them all.
@@ -92,7 +95,7 @@ class MStepOptions:
     optimizer: str = "lbfgs"
     solver: SolverSettings = field(default_factory=SolverSettings)
     fit_shape: bool = True
-    fit_x0: bool = True
+    fit_x0: bool | str = True
     fit_Rw: bool = True
     fit_Rv: bool = True
     rows_per_step: int | None = None
@@ -435,11 +438,15 @@ def noise_statistics(
 
 
 @torch.no_grad()
-def initial_state_update(estep_out: EStepOutput, Rw: Tensor, *, shared: bool = True) -> tuple[Tensor, Tensor]:
+def initial_state_update(
+    estep_out: EStepOutput, Rw: Tensor, *, shared: bool = True, mean: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
     """Prior of the first state from its smoothed distribution, pooled over each group's sequences.
 
     ``Rw`` is *added* to the smoothed covariance: with a single record the maximum-likelihood prior
-    would otherwise collapse to a point over the iterations.
+    would otherwise collapse to a point over the iterations.  ``mean``: the prior's mean held (a
+    simulation model's fitted first state); the covariance is then the smoothed second moment about
+    it, the maximum-likelihood covariance for that mean.
     """
     sm = estep_out.smoother
     X0 = estep_out.filter.particles[0]  # (B, L, nx)
@@ -450,7 +457,8 @@ def initial_state_update(estep_out: EStepOutput, Rw: Tensor, *, shared: bool = T
     groups = _Groups(shared, B)
     w0 = w0.unsqueeze(-1)  # (B, L, 1)
     count = groups.pool(torch.ones(B, dtype=X0.dtype, device=X0.device))
-    mean = groups.pool((w0 * X0).sum(1)) / count[..., None]
+    if mean is None:
+        mean = groups.pool((w0 * X0).sum(1)) / count[..., None]
     d = X0 - groups.per_sequence(mean.reshape(groups.n, -1)).unsqueeze(1)
     cov = groups.pool((w0 * d).transpose(-1, -2) @ d) / count[..., None, None]
     return mean, symmetric_pd(cov + Rw)
@@ -510,7 +518,8 @@ def m_step(
     if options.Rv_floor is not None and options.fit_Rv:
         noise = noise.floored(options.Rv_floor)
     if options.fit_x0:
-        x0_mean, x0_cov = initial_state_update(estep_out, Rw, shared=shared)
+        held = _stack([m.x0_mean for m in models], groups) if options.fit_x0 == "cov" else None
+        x0_mean, x0_cov = initial_state_update(estep_out, Rw, shared=shared, mean=held)
     else:
         x0_mean = _stack([m.x0_mean for m in models], groups)
         x0_cov = _stack([m.x0_cov for m in models], groups)

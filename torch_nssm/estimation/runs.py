@@ -95,7 +95,10 @@ class EMRunner:
             desc = "robust EM" if self.n_init == 1 else f"robust EM (run {r + 1}/{self.n_init})"
             options = self.make_options(desc, fit_Rw=self.fit_Rw if fit_Rw is None else fit_Rw)
             if self.hold_modules:  # a simulation model: its f, g and first state are the first stage's
-                options.mstep.fit_modules = options.mstep.fit_x0 = False
+                options.mstep.fit_modules = False
+                # the prior's spread about that state is EM's: the spread of the states over the
+                # whole record, the start's, is far wider than what the record leaves open
+                options.mstep.fit_x0 = "cov" if options.mstep.fit_x0 else False
             options.mstep.Rv_floor = start.Rv_floor
             if not progress:
                 options.progress = None
