@@ -190,3 +190,29 @@ def test_fit_independent_on_cuda():
     assert np.isfinite(theta).all()
     assert len({tuple(np.round(t, 6)) for t in theta}) == 4  # each data set its own parameters
     np.testing.assert_allclose(theta.mean(0), [0.9, 1.0, 1.0], atol=0.1)
+
+
+def test_neural_fit_end_to_end_on_cuda():
+    """A network ``f``: the neural first stage (LBFGS over windows of the record) and EM run on
+    the device, the fitted network stays there and simulates the record."""
+    from torch_nssm.blocks.linear import LinearObservation
+    from torch_nssm.datasets import make_pendulum
+    from torch_nssm.neural import MLPTransition
+
+    d = make_pendulum(n_samples=300, outlier_fraction=0.03, random_state=0, n_validation=50)
+    net = MLPTransition(2, 1, hidden=(16,), random_state=0)
+    g = LinearObservation(2, 1, 1, C=[[1.0, 0.0]], fit_offset=False).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        est = RobustNSSMEstimator(
+            net, g, x0_mean=list(d.x0_guess), n_particles=50, n_iter=3, random_state=0, device=str(CUDA)
+        ).fit(d.u, d.y)
+    assert est.first_stage_.accepted
+    assert all(p.device.type == CUDA.type for p in est.f_.parameters())
+    y = np.asarray(d.y).reshape(-1)
+    regular = ~np.asarray(d.outlier_mask).reshape(-1)
+    free = np.asarray(est.predict(d.u)).reshape(-1)
+    assert np.isfinite(free).all()
+    # the trained network simulates the record far better than a constant
+    assert np.sqrt(np.mean((free - y)[regular] ** 2)) < 0.5 * np.std(y[regular])
+
