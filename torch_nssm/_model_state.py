@@ -184,7 +184,8 @@ class ModelState:
         n = min(data.n_steps, INITIAL_SAMPLES)
         head = SequenceBatch(data.u[:n], data.y[:n], data.lengths.clamp(max=n))
         wide = 100.0 * model.x0_cov + model.Rw
-        spread = state_spread(replace(model, x0_cov=torch.zeros_like(wide)), data)  # this record's
+        # this record's spread; a state whose free run is not finite or does not move adds nothing
+        spread = state_spread(replace(model, x0_cov=torch.zeros_like(wide)), data)
         broad = replace(model, x0_cov=wide + spread)
         estep = self._e_step(broad, head, generator)
         mean, cov = smoothed_moments(estep.filter.particles[:1], estep.smoother.log_weights[:1])

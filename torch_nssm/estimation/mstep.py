@@ -24,7 +24,7 @@ import copy
 import math
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
-from typing import Callable
+from typing import Callable, Literal
 
 import torch
 from torch import Tensor, nn
@@ -95,7 +95,7 @@ class MStepOptions:
     optimizer: str = "lbfgs"
     solver: SolverSettings = field(default_factory=SolverSettings)
     fit_shape: bool = True
-    fit_x0: bool | str = True
+    fit_x0: bool | Literal["cov"] = True
     fit_Rw: bool = True
     fit_Rv: bool = True
     rows_per_step: int | None = None
