@@ -420,7 +420,7 @@ def _fit_stage(
         problem = _Shooting(params, windows, scale)
         result = levenberg_marquardt(
             problem, theta, x0, problem.weight, loss=loss, links=links, max_iter=max_iter, ftol=STAGE_FTOL,
-            damping=COLD_DAMPING if cold and run == 0 else WARM_DAMPING,
+            damping=COLD_DAMPING if cold and run == 0 else WARM_DAMPING, speculative=True,
         )
         initial = result.initial_objective if initial is None else initial
         iterations += result.n_iter

@@ -10,7 +10,9 @@ never a dense ``(P + W q)``-square system.
 
 The Jacobian comes from one-sided finite differences evaluated as one batch of ``P + q + 1``
 parameter sets (``residuals`` takes the batch), which costs a few evaluations where forward-mode
-differentiation through a simulation loop costs 15-20.  Robust losses are handled by iteratively
+differentiation through a simulation loop costs 15-20; with ``speculative`` each trial point is
+evaluated in the batch of its own Jacobian, so an accepted step costs one pass of a simulation
+loop instead of two.  Robust losses are handled by iteratively
 reweighted Gauss-Newton: each step uses the weights ``rho'(r^2)`` at the current residuals, and a
 step is kept only when the robust objective itself decreases (Nielsen's damping update).
 """
@@ -57,7 +59,7 @@ class LeastSquaresResult:
         ``sum w rho(r^2) / sum w`` at the result.
     initial_objective : float
     n_iter : int
-        Jacobians computed.
+        Iterations (steps tried from a new point; ``max_iter`` bounds them).
     n_evaluations : int
         Residual evaluations (a Jacobian counts ``P + q + 1``).
     status : str
@@ -271,6 +273,7 @@ def levenberg_marquardt(
     ftol: float = 1e-8,
     xtol: float = 1e-8,
     damping: float = 1e-3,
+    speculative: bool = False,
 ) -> LeastSquaresResult:
     """Minimise ``sum w rho(r^2)`` (plus the continuity residuals of ``links``) over ``theta``
     (shared) and ``local`` (per window).
@@ -290,7 +293,7 @@ def levenberg_marquardt(
     links : Links, optional
         Soft continuity between consecutive windows.
     max_iter : int
-        Jacobians at most.
+        Iterations at most (one Jacobian each; with ``speculative``, one for each trial point).
     ftol, xtol : float
         Stop when an accepted step lowers the objective by less than ``ftol`` relatively, or
         moves every variable by less than ``xtol`` relatively.
@@ -300,6 +303,11 @@ def levenberg_marquardt(
         Gauss-Newton's, right for a start near the minimum (the M-step); about 1 for a start far
         from it, where a full Gauss-Newton step can jump into another basin (the ``ftol`` and
         ``xtol`` stops then wait until the damping has come down to :data:`SETTLED_DAMPING`).
+    speculative : bool
+        Evaluate each trial point's Jacobian with its residuals, in one batch, so that an accepted
+        step (most are) needs no further pass for the next Jacobian.  Worth it where an evaluation's
+        cost is its sequential steps rather than its batch's width (a simulation over a window);
+        a rejected trial wastes ``P + q`` evaluations.
 
     Returns
     -------
@@ -313,7 +321,14 @@ def levenberg_marquardt(
         link_r = _link_residuals(None if ends is None else ends[0], lo, links)
         return r[0], link_r, _objective(r[0], weight, total, loss, link_r)
 
-    r, link_r, F = evaluate(theta, local)
+    per_jacobian = theta.numel() + local.shape[-1] + 1
+    J = None
+    if speculative:  # the start's residuals with its Jacobian
+        J = _jacobian(residuals, theta, local)
+        link_r = _link_residuals(J[3] if len(J) > 3 else None, local, links)
+        F, n_eval = _objective(J[0], weight, total, loss, link_r), per_jacobian
+    else:
+        _, link_r, F = evaluate(theta, local)
     F0 = F
     if not math.isfinite(F):
         return LeastSquaresResult(theta, local, F, F0, 0, n_eval, "not_finite")
@@ -323,11 +338,12 @@ def levenberg_marquardt(
     settled = lam <= SETTLED_DAMPING
     status, n_iter = "max_iter", 0
     while n_iter < max_iter:
-        J = _jacobian(residuals, theta, local)
+        if J is None:
+            J = _jacobian(residuals, theta, local)
+            n_eval += per_jacobian
         r = J[0]
         link_r = _link_residuals(J[3] if len(J) > 3 else None, local, links)
         n_iter += 1
-        n_eval += theta.numel() + local.shape[-1] + 1
         _, drho = robust_loss(r * r, loss)
         omega = weight * drho / total
         r0 = torch.where(weight > 0, r, torch.zeros_like(r))
@@ -336,8 +352,15 @@ def levenberg_marquardt(
             dg, dl, predicted = _step(J, r0, omega, link_r, links, total, lam)
             first_prediction = predicted if first_prediction is None else first_prediction
             new_theta, new_local = theta + dg, local + dl
-            _, new_link_r, F_new = evaluate(new_theta, new_local)
-            n_eval += 1
+            if speculative:  # the trial point's residuals with its Jacobian, in one batch
+                J_new = _jacobian(residuals, new_theta, new_local)
+                new_link_r = _link_residuals(J_new[3] if len(J_new) > 3 else None, new_local, links)
+                F_new = _objective(J_new[0], weight, total, loss, new_link_r)
+                n_eval += per_jacobian
+            else:
+                J_new = None
+                _, new_link_r, F_new = evaluate(new_theta, new_local)
+                n_eval += 1
             gain = (F - F_new) / (2.0 * predicted) if predicted > 0 else -1.0
             if math.isfinite(F_new) and F_new < F:
                 accepted = True
@@ -356,7 +379,7 @@ def levenberg_marquardt(
         small_f = (F - F_new) <= ftol * max(abs(F), 1e-300)
         scale = torch.cat([theta.abs().reshape(-1), local.abs().reshape(-1)]).clamp_min(1e-8)
         small_x = bool((torch.cat([dg.reshape(-1), dl.reshape(-1)]).abs() <= xtol * scale).all())
-        theta, local, F = new_theta, new_local, F_new
+        theta, local, F, J = new_theta, new_local, F_new, J_new
         if settled and (small_f or small_x):
             status = "converged"
             break
