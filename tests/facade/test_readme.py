@@ -64,6 +64,10 @@ def test_readme_python_blocks_run(monkeypatch):
     short = NeuralFirstStageOptions(horizon=20, max_horizon=20, max_iter=5)
     small_sim = functools.partial(ws.simulation_start, options=short)
     monkeypatch.setattr(torch_nssm, "simulation_start", small_sim, raising=False)
+    # ... also where fit runs it (first_stage="auto" on a network)
+    from torch_nssm.estimation import start as start_module
+
+    monkeypatch.setattr(start_module, "default_options", lambda noise_name: short)
     namespace: dict = {"__name__": "readme"}
     n_threads = torch.get_num_threads()
     try:
@@ -78,3 +82,4 @@ def test_readme_python_blocks_run(monkeypatch):
     assert torch.get_num_threads() == n_threads
     assert isinstance(namespace["a_hat"], float)
     assert hasattr(namespace["est"], "f_")  # the started estimator was fitted
+    assert hasattr(namespace["refined"], "f_")  # the explicit neural recipe ran too
