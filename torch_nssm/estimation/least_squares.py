@@ -314,21 +314,20 @@ def levenberg_marquardt(
     LeastSquaresResult
     """
     total = weight.sum().clamp_min(1e-300)
-    n_eval = 1
 
-    def evaluate(th: Tensor, lo: Tensor) -> tuple[Tensor, Tensor | None, float]:
+    def evaluate(th: Tensor, lo: Tensor) -> tuple[list | None, float, int]:
+        """The objective at a point, with the point's Jacobian when ``speculative`` (in one batch);
+        also how many evaluations that took."""
+        if speculative:
+            J = _jacobian(residuals, th, lo)
+            link_r = _link_residuals(J[3] if len(J) > 3 else None, lo, links)
+            return J, _objective(J[0], weight, total, loss, link_r), per_jacobian
         r, ends = _split(residuals(th.unsqueeze(0), lo.unsqueeze(0)))
         link_r = _link_residuals(None if ends is None else ends[0], lo, links)
-        return r[0], link_r, _objective(r[0], weight, total, loss, link_r)
+        return None, _objective(r[0], weight, total, loss, link_r), 1
 
     per_jacobian = theta.numel() + local.shape[-1] + 1
-    J = None
-    if speculative:  # the start's residuals with its Jacobian
-        J = _jacobian(residuals, theta, local)
-        link_r = _link_residuals(J[3] if len(J) > 3 else None, local, links)
-        F, n_eval = _objective(J[0], weight, total, loss, link_r), per_jacobian
-    else:
-        _, link_r, F = evaluate(theta, local)
+    J, F, n_eval = evaluate(theta, local)
     F0 = F
     if not math.isfinite(F):
         return LeastSquaresResult(theta, local, F, F0, 0, n_eval, "not_finite")
@@ -352,15 +351,8 @@ def levenberg_marquardt(
             dg, dl, predicted = _step(J, r0, omega, link_r, links, total, lam)
             first_prediction = predicted if first_prediction is None else first_prediction
             new_theta, new_local = theta + dg, local + dl
-            if speculative:  # the trial point's residuals with its Jacobian, in one batch
-                J_new = _jacobian(residuals, new_theta, new_local)
-                new_link_r = _link_residuals(J_new[3] if len(J_new) > 3 else None, new_local, links)
-                F_new = _objective(J_new[0], weight, total, loss, new_link_r)
-                n_eval += per_jacobian
-            else:
-                J_new = None
-                _, new_link_r, F_new = evaluate(new_theta, new_local)
-                n_eval += 1
+            J_new, F_new, n = evaluate(new_theta, new_local)
+            n_eval += n
             gain = (F - F_new) / (2.0 * predicted) if predicted > 0 else -1.0
             if math.isfinite(F_new) and F_new < F:
                 accepted = True
