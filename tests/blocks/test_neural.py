@@ -201,14 +201,11 @@ def test_invalid_arguments():
 
 
 def test_estimator_fits_mlp_transition():
-    """A short robust EM fit of a residual MLP on the paper's §4.1 data (true f = 0.9 x + u)."""
+    """A short robust EM fit of a residual MLP on the paper's §4.1 data (true f = 0.9 x + u): EM's
+    own M-steps train the network, on two seeds of the filter."""
     data = make_paper_example(n_samples=200, random_state=0)
-    clean = ~data.outlier_mask
 
-    def corr(pred):
-        return np.corrcoef(np.ravel(pred)[clean], data.y[clean, 0])[0, 1]
-
-    def estimator(n_iter):
+    def estimator(n_iter, random_state):
         return RobustNSSMEstimator(
             MLPTransition(1, 1, hidden=(16,), random_state=0),
             PaperObservation(1.0),
@@ -220,25 +217,26 @@ def test_estimator_fits_mlp_transition():
             n_iter=n_iter,
             tol=0,
             first_stage=None,  # EM itself trains the network here
-            random_state=0,
+            random_state=random_state,
         )
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        start = estimator(0).fit(data.u, data.y)
-        est = estimator(6).fit(data.u, data.y)
-    ll = est.history_["log_likelihood"]
-    assert ll.shape == (7,) and np.all(np.isfinite(ll))
-    # measured: -545 at the identity start, about -255 after 6 iterations
-    assert ll[-1] > ll[0] + 100
-    assert np.mean(ll[-3:]) > np.mean(ll[1:4])
-    # most of the first jump is the noise update; a frozen MLP (learning_rate=1e-7) ends near -276,
-    # the learning one near -253 (-253 to -262 over 4 seeds)
-    assert np.mean(ll[-3:]) > -268
-    # the MLP left its identity start
-    assert not torch.allclose(est.f_.net[-1].weight, start.f_.net[-1].weight)
-    # free run: correlation with the clean outputs, measured 0.12 at the start and 0.36 after
-    # (the true model's free run reaches 0.74: process noise limits any free run)
-    c0, c1 = corr(start.predict(data.u)), corr(est.predict(data.u))
-    assert c1 > c0 + 0.15
-    assert c1 > 0.25
+        start = estimator(0, 0).fit(data.u, data.y)
+        for seed in (0, 1):
+            est = estimator(6, seed).fit(data.u, data.y)
+            ll = est.history_["log_likelihood"]
+            assert ll.shape == (7,) and np.all(np.isfinite(ll))
+            # measured: -541 at the identity start, -208 to -257 after 6 iterations (seeds 0-4)
+            assert ll[-1] > ll[0] + 100
+            assert np.mean(ll[-3:]) > np.mean(ll[1:4])
+            # most of the first jump is the noise update; a frozen MLP (learning_rate=1e-7) ends
+            # near -276, the learning one above -260
+            assert np.mean(ll[-3:]) > -268
+            # the MLP left its identity start
+            assert not torch.allclose(est.f_.net[-1].weight, start.f_.net[-1].weight)
+    # Not asserted: the free run's fit after 6 iterations.  From the identity start it is a lottery
+    # of the filter's seed and the machine's floating-point paths (correlation with the clean
+    # outputs -0.10, 0.31, 0.32, 0.76, 0.38 for seeds 0-4 on one machine, 0.36 for seed 0 on
+    # another): EM alone does not train a network reliably, which is why fit() trains it by
+    # simulation error first (neural_first_stage).

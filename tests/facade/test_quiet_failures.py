@@ -272,9 +272,11 @@ def test_a_noise_model_that_absorbs_the_data_is_reported():
         x[k + 1] = 0.95 * x[k] + 0.5 * u[k, 0]
     y = (3 * np.tanh(x) ** 3 + 0.02 * rng.standard_normal(300))[:, None]
     f, g = LinearTransition(1, 1, A=[[0.9]], B=[[0.4]]), LinearObservation(1, 1, 1)
+    # 100 particles: with 40 the filter itself is degenerate on some seeds and machines (42 % of
+    # the samples down-weighted, clustering odds 2.6); with 100, seeds 0-5: odds 10-42
     with pytest.warns(RuntimeWarning, match=r"the measurement noise absorbs much of the data: dof \[0.5\]"):
         RobustNSSMEstimator(
-            f, g, x0_mean=[0.0], n_particles=40, n_iter=6, random_state=0, dof_init=0.5, fit_dof=False
+            f, g, x0_mean=[0.0], n_particles=100, n_iter=6, random_state=0, dof_init=0.5, fit_dof=False
         ).fit(u, y)
     d = make_paper_example(n_samples=200, outlier_fraction=0.1, random_state=1)
     with warnings.catch_warnings():
