@@ -277,3 +277,27 @@ def test_lbfgs_windows_states_move_in_the_networks_state_units():
         torch.testing.assert_close(a, b, rtol=1e-9, atol=1e-12)
     scaled = r1.first_states * torch.as_tensor(units)
     torch.testing.assert_close(r2.first_states, scaled, rtol=1e-9, atol=1e-12)
+
+
+def test_phases_double_past_four_horizons_only_while_the_held_out_score_improves():
+    """By default the LBFGS phases' windows double to ``4 * horizon``, then on while the last phase
+    improved the held-out score, up to the longest training part; ``max_horizon`` fixes them; with
+    nothing held out they stop at ``4 * horizon``."""
+    from torch_nssm.estimation.neural_first_stage import _next_horizon, _Problem
+
+    u, y, _, _ = _plant(1000, 0)
+    data = _batch(u, y)
+    model = StateSpaceModel(
+        MLPTransition(1, 1, hidden=(4,), random_state=0), Identity(), None, None, torch.zeros(1), None
+    )
+    opt = NeuralFirstStageOptions(horizon=20)  # 150 samples held out: a training part of 850
+    problem = _Problem(model, data, opt)
+    assert [_next_horizon(opt, problem, H, False) for H in (20, 40, 80)] == [40, 80, None]
+    assert [_next_horizon(opt, problem, H, True) for H in (80, 160, 320, 640)] == [160, 320, 640, None]
+    fixed = NeuralFirstStageOptions(horizon=20, max_horizon=40)
+    assert _next_horizon(fixed, problem, 20, False) == 40
+    assert _next_horizon(fixed, problem, 40, True) is None
+    no_holdout = NeuralFirstStageOptions(horizon=20, validation_fraction=0.0)
+    problem = _Problem(model, data, no_holdout)
+    assert _next_horizon(no_holdout, problem, 40, False) == 80
+    assert _next_horizon(no_holdout, problem, 80, True) is None

@@ -13,7 +13,8 @@ Forgione & Piga 2021), and this stage does that before EM:
 * ``optimizer="lbfgs"`` (default): the windows tile the record, each window's first state is a free
   parameter (in units of the network's state normalisation ``x_scale``), and full-batch LBFGS runs
   in rounds of ``eval_every`` iterations, the Cauchy scale re-estimated from the current errors at
-  the start of each round;
+  the start of each round; phases of doubling window length follow, past ``4 * horizon`` while
+  a phase improves the held-out score;
 * ``optimizer="adam"`` (SUBNET's scheme): windows start anywhere, each window's first state comes
   from an **encoder** (an MLP of the ``encoder_lags`` outputs and inputs before it, trained
   jointly), and Adam runs over minibatches of windows with a cosine-decaying step size;
@@ -28,9 +29,9 @@ The result is kept when the whole record's free run from the fitted first state 
 start's.  On the pendulum of the suite (2,000 samples, 3 % outliers, ``MLPTransition(2, 1,
 hidden=(32,))``) LBFGS reaches a validation free-run RMSE of 0.030 rad in 1,325 iterations (the
 early stop ending each phase) where Adam over encoded windows reach 0.049 rad in 1,000 steps; on
-Silverbox (90,372 samples, a 3-state network) LBFGS reaches 1.47 mV on the full arrow in 1,725
-iterations (``benchmarks/neural.py``, ``benchmarks/README.md``).  The entry point is
-:func:`neural_first_stage`; design notes: ``docs/design.md`` ("How a neural fit starts").
+Silverbox (90,372 samples, a 3-state network) LBFGS reaches 0.82 mV on the full arrow in 2,825
+iterations, its windows up to 1,600 samples (``benchmarks/neural.py``, ``benchmarks/README.md``).
+The entry point is :func:`neural_first_stage`; design notes: ``docs/design.md`` ("How a neural fit starts").
 """
 
 from __future__ import annotations
@@ -102,8 +103,9 @@ class NeuralFirstStageOptions:
         when no record is long enough for a held-out part, where the patience rarely ends it; Adam:
         3,000).
     max_horizon : int or None
-        LBFGS: the longest window; the phases double ``horizon`` up to it (default
-        ``4 * horizon``).
+        LBFGS: the longest window; the phases double ``horizon`` up to it.  Default: at least
+        to ``4 * horizon``, then on while a phase improves the held-out score, up to the longest
+        record's training part (``4 * horizon`` when nothing is held out).
     eval_every : int or None
         LBFGS iterations per round, or Adam steps between evaluations (default 25, and one pass
         over the windows clipped to 25-250 steps).
@@ -551,14 +553,21 @@ def _with_state(f, g, state, fn, *args):
 
 
 # ---------------------------------------------------------------------- LBFGS over tiled windows
-def _horizons(opt: NeuralFirstStageOptions) -> list[int]:
-    """The window lengths of the LBFGS phases: ``horizon`` doubled up to ``max_horizon``."""
-    out, H = [opt.horizon], opt.horizon
-    top = opt.max_horizon or 4 * opt.horizon
-    while 2 * H <= top:
-        H *= 2
-        out.append(H)
-    return out
+def _next_horizon(opt: NeuralFirstStageOptions, problem: _Problem, H: int, improved: bool) -> int | None:
+    """The next LBFGS phase's window length after a phase of ``H`` (``None``: training ends).
+
+    ``horizon`` doubles up to ``max_horizon`` if given; by default at least to ``4 * horizon``
+    and beyond while the last phase improved the held-out score, up to the longest record's
+    training part: longer windows weigh the slow, long-horizon behaviour that short windows
+    leave free (the suite's oscillator, benchmarks/README "How the neural first stage's training
+    ends")."""
+    if opt.max_horizon is not None:
+        top = opt.max_horizon
+    elif problem.val_records:
+        top = int((problem.lengths - problem.n_val).max()) if H < 4 * opt.horizon or improved else H
+    else:
+        top = 4 * opt.horizon
+    return 2 * H if 2 * H <= top else None
 
 
 class _Tiling:
@@ -695,7 +704,9 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
         simulated = torch.where(torch.isfinite(simulated), simulated, x0.unsqueeze(1))
     known = None  # the previous phase's fitted window states by (record, start)
     iterations, stop, n_windows, scale = 0, "max_iter", 0, None
-    for H in _horizons(opt):
+    H: int | None = opt.horizon
+    while H is not None:
+        score_before = best.score
         tiling = _Tiling(problem, H, state_scale)
         if known is None:
             tiling.start_at(simulated[tiling.rec, tiling.k0])
@@ -736,6 +747,7 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
         if stop == "max_seconds" or best.iteration == 0:
             break
         known = {span: tiling.x[i].detach().clone() for i, span in enumerate(tiling.spans)}
+        H = _next_horizon(opt, problem, H, best.score < score_before)
     if math.isfinite(best.score):
         best.restore()
     return best, first_states.clone(), n_windows, stop, iterations
