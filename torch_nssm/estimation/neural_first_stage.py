@@ -563,10 +563,11 @@ def _next_horizon(opt: NeuralFirstStageOptions, problem: _Problem, H: int, impro
     ends")."""
     if opt.max_horizon is not None:
         top = opt.max_horizon
-    elif problem.val_records:
-        top = int((problem.lengths - problem.n_val).max()) if H < 4 * opt.horizon or improved else H
-    else:
+    elif not problem.val_records:
         top = 4 * opt.horizon
+    else:
+        longest = int((problem.lengths - problem.n_val).max())  # the longest training part
+        top = longest if H < 4 * opt.horizon or improved else H
     return 2 * H if 2 * H <= top else None
 
 
