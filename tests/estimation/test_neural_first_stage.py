@@ -301,3 +301,33 @@ def test_phases_double_past_four_horizons_only_while_the_held_out_score_improves
     problem = _Problem(model, data, no_holdout)
     assert _next_horizon(no_holdout, problem, 40, False) == 80
     assert _next_horizon(no_holdout, problem, 80, True) is None
+
+
+def test_phases_are_more_patient_where_the_held_out_part_is_short():
+    """The LBFGS phases' default patience is 20 held-out evaluations where the held-out parts hold
+    fewer than 10,000 samples (a short held-out part is a weak guide of progress), 6 where they
+    hold more or where nothing is held out; ``patience`` overrides it, and a short record's phase
+    ends 20 rounds after its best score."""
+    from torch_nssm.estimation.neural_first_stage import _lbfgs_patience, _Problem
+
+    model = StateSpaceModel(
+        MLPTransition(1, 1, hidden=(4,), random_state=0), Identity(), None, None, torch.zeros(1), None
+    )
+    opt = NeuralFirstStageOptions(horizon=20)
+    short = _Problem(model, _batch(*_plant(1000, 0)[:2]), opt)  # 150 samples held out
+    assert _lbfgs_patience(short) == 20
+    long = _Problem(model, _batch(*_plant(70_000, 0)[:2]), opt)  # 10,500 held out
+    assert _lbfgs_patience(long) == 6
+    none = _Problem(model, _batch(*_plant(1000, 0)[:2]), NeuralFirstStageOptions(validation_fraction=0))
+    assert _lbfgs_patience(none) == 6
+
+    data = _batch(*_plant(600, 0)[:2])  # one phase of 20-sample windows, 90 samples held out
+    for patience, expected in ((None, 20), (3, 3)):
+        model = StateSpaceModel(
+            MLPTransition(1, 1, hidden=(8,), random_state=0), Identity(), None, None, torch.zeros(1), None
+        )
+        options = NeuralFirstStageOptions(horizon=20, max_horizon=20, patience=patience)
+        report = neural_first_stage(model, data, options)
+        scores = report.validation_losses
+        assert report.stop_reason == "patience"
+        assert len(scores) - 1 - scores.index(min(scores)) == expected
