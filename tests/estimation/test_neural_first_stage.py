@@ -307,7 +307,7 @@ def test_phases_are_more_patient_where_the_held_out_part_is_short():
     """The LBFGS phases' default patience is 20 held-out evaluations where the held-out parts hold
     fewer than 10,000 samples (a short held-out part is a weak guide of progress), 6 where they
     hold more or where nothing is held out; ``patience`` overrides it, and a short record's phase
-    ends 20 rounds after its best score."""
+    ends 20 evaluations after its best score."""
     from torch_nssm.estimation.neural_first_stage import _lbfgs_patience, _Problem
 
     model = StateSpaceModel(

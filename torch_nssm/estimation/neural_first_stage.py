@@ -768,8 +768,8 @@ def _train_lbfgs(model: StateSpaceModel, problem: _Problem, opt: NeuralFirstStag
 
 
 def _lbfgs_patience(problem: _Problem) -> int:
-    """The LBFGS phases' default patience: longer where the held-out parts are short (a noisier
-    guide of progress, and cheaper rounds)."""
+    """The LBFGS phases' default patience: longer where the held-out parts are short (a weak
+    guide of progress, see ``LBFGS_PATIENCE_SHORT_HOLDOUT``)."""
     held_out = int(problem.n_val.sum())
     if not problem.val_records or held_out >= SHORT_HOLDOUT:  # nothing held out: the cap decides
         return LBFGS_PATIENCE
