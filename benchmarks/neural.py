@@ -5,10 +5,11 @@ wall seconds beside them, because the machines these ran on were shared):
 
 * ``pendulum`` -- the suite's damped pendulum (2,000 samples, 3 % outliers, validation record of
   2,000 samples).  The physical model fitted with the defaults (``RobustNSSMEstimator(f, g,
-  x0_mean=..., random_state=0)``) against the README's neural recipe, ``MLPTransition(2, 1,
+  x0_mean=..., random_state=0)``) against the README's explicit form, ``MLPTransition(2, 1,
   hidden=(32,))`` with ``optimizer="adam", max_iter_mstep=50, n_iter=30``, started by
   ``simulation_start`` (the network trained by robust simulation error, then EM), the same
-  estimator fitted with the defaults (``first_stage="auto"`` runs the same training inside ``fit``),
+  estimator fitted with the defaults (the README's recipe, whose fit the targets are computed on:
+  ``first_stage="auto"`` runs the same training inside ``fit``),
   and against its baselines: the same network trained by simulation error alone (the first stage), the linear
   state-space reference of ``distilled_start`` and the earlier recipe (``distilled_start``
   then EM).  Scores: validation free-run RMSE against the noise-free angle; the physical model
