@@ -358,20 +358,7 @@ def suite(plants: list[str], quick: bool) -> dict[str, Any]:
             "warnings": said,
         }
         # the user's neural f: normalised by the scales of the plant's states (the physics says them)
-        x = np.asarray(d.x)
-        dx = np.diff(x, axis=0)
-        nx, nu = x.shape[1], np.asarray(d.u).reshape(n, -1).shape[1]
-        net = MLPTransition(
-            nx,
-            nu,
-            hidden=(32,),
-            x_mean=x.mean(0),
-            x_scale=x.std(0) + 1e-12,
-            u_mean=np.asarray(d.u).reshape(n, -1).mean(0),
-            u_scale=np.asarray(d.u).reshape(n, -1).std(0) + 1e-12,
-            out_scale=dx.std(0) + 1e-12,
-            random_state=0,
-        )
+        net = _suite_network(d, n, 0)
         _, g_start = plant.model(plant.start)
         # the defaults, as the README recommends: fit() trains the network by simulation error
         # first (first_stage="auto") and runs the noise EM of the simulation model it holds
@@ -443,6 +430,92 @@ def pendulum_records(seeds: list[int], n: int = 2000) -> dict[str, Any]:
     return rows
 
 
+def _suite_network(d, n: int, seed: int) -> MLPTransition:
+    """The suite study's ``MLPTransition`` for record ``d``: normalised by the plant's state scales."""
+    x = np.asarray(d.x)
+    u = np.asarray(d.u).reshape(n, -1)
+    dx = np.diff(x, axis=0)
+    return MLPTransition(
+        x.shape[1],
+        u.shape[1],
+        hidden=(32,),
+        x_mean=x.mean(0),
+        x_scale=x.std(0) + 1e-12,
+        u_mean=u.mean(0),
+        u_scale=u.std(0) + 1e-12,
+        out_scale=dx.std(0) + 1e-12,
+        random_state=seed,
+    )
+
+
+def first_stage_spread(
+    plants: list[str], records: list[int], offsets: list[int], decays: list[float], quick: bool
+) -> list[dict[str, Any]]:
+    """The neural first stage alone (``simulation_start`` with the defaults but ``weight_decay``)
+    over records and network initialisations: ``pendulum`` draws record ``r`` of the README's family
+    and initialises the network with ``r + offset``; a suite plant keeps its record (seed 0) and
+    initialises the network with ``offset``.  Validation RMSE of the free run from a first state
+    fitted to the validation record's first 200 samples, the training record's free run (the same
+    rule), the best held-out score, CPU s."""
+    from suite.plants import PLANTS
+
+    from torch_nssm.datasets import make_pendulum, pendulum_model
+
+    rows: list[dict[str, Any]] = []
+    print(f"{'plant':>18} {'record':>6} {'net':>4} {'decay':>7} {'validation':>10} {'training':>9} "
+          f"{'held-out':>8} {'CPU s':>6} {'iter.':>5}", flush=True)
+    for name in plants:
+        for record in records if name == "pendulum" else [0]:
+            if name == "pendulum":
+                n = 400 if quick else 2000
+                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
+                x0_guess = np.zeros(2)
+            else:
+                plant = PLANTS[name]
+                n, n_val = (plant.quick_train, plant.quick_validation) if quick else (
+                    plant.n_train,
+                    plant.n_validation,
+                )
+                d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
+                x0_guess = d.x0_guess
+            v = d.validation
+            for offset in offsets:
+                for decay in decays:
+                    seed = record + offset if name == "pendulum" else offset
+                    if name == "pendulum":
+                        f, g = MLPTransition(2, 1, hidden=(32,), random_state=seed), pendulum_model()[1]
+                    else:
+                        f, g = _suite_network(d, n, seed), PLANTS[name].model(PLANTS[name].start)[1]
+                    est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, random_state=0)
+                    options = NeuralFirstStageOptions(weight_decay=decay)
+                    clock = Clock()
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        warm, report = simulation_start(est, d.u, d.y, options=options, return_report=True)
+                    cpu = clock.read()["cpu_s"]
+                    x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, x0_guess)
+                    x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, x0_guess)
+                    row = {
+                        "plant": name,
+                        "record": record,
+                        "network_seed": seed,
+                        "weight_decay": decay,
+                        "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
+                        "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
+                        "held_out": min(report.validation_losses) if report.validation_losses else math.nan,
+                        "cpu_s": cpu,
+                        "iterations": report.iterations,
+                    }
+                    rows.append(row)
+                    cells = [
+                        f"{name:>18} {record:>6} {seed:>4} {decay:7.0e} {row['validation_rmse']:10.4g}",
+                        f"{row['training_rmse']:9.4g} {row['held_out']:8.4f} {cpu:6.1f}",
+                        f"{report.iterations:>5}",
+                    ]
+                    print(" ".join(cells), flush=True)
+    return rows
+
+
 # ------------------------------------------------------------------------------ main
 def _jsonable(obj):
     if isinstance(obj, dict):
@@ -458,7 +531,9 @@ def _jsonable(obj):
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("study", choices=["pendulum", "pendulum-records", "silverbox", "suite"])
+    parser.add_argument(
+        "study", choices=["pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread"]
+    )
     parser.add_argument("--seeds", default="1,2,3,4", help="pendulum-records: records' and networks' seeds")
     parser.add_argument("--quick", action="store_true")
     parser.add_argument("--out", type=Path)
@@ -473,6 +548,9 @@ def main(argv=None) -> None:
     parser.add_argument("--losses", default="cauchy,squared", help="silverbox: the training losses")
     parser.add_argument("--linear-part", action="store_true", help="silverbox: f = linear model + network")
     parser.add_argument("--plants", default="pendulum,tanks,oscillator,wiener_hammerstein,bouc_wen,axis")
+    parser.add_argument("--records", default="0,1,2,3,4", help="first-stage-spread: pendulum records")
+    parser.add_argument("--net-seeds", default="0,10,20", help="first-stage-spread: network seed offsets")
+    parser.add_argument("--weight-decay", default="0,1e-3", help="first-stage-spread: weight decays")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.study == "pendulum":
@@ -491,6 +569,14 @@ def main(argv=None) -> None:
             args.max_iter,
             args.losses.split(","),
             args.linear_part,
+        )
+    elif args.study == "first-stage-spread":
+        out = first_stage_spread(
+            args.plants.split(","),
+            [int(a) for a in args.records.split(",")],
+            [int(a) for a in args.net_seeds.split(",")],
+            [float(a) for a in args.weight_decay.split(",")],
+            args.quick,
         )
     else:
         out = suite(args.plants.split(","), args.quick)

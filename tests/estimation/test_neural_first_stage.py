@@ -195,6 +195,8 @@ def test_first_states_noise_levels_and_helpers():
         (dict(max_iter=0), "max_iter"),
         (dict(learning_rate=0.0), "learning_rate"),
         (dict(max_seconds=-1.0), "max_seconds"),
+        (dict(weight_decay=-1e-3), "weight_decay"),
+        (dict(weight_decay=math.nan), "weight_decay"),
     ],
 )
 def test_bad_options_are_named(options, match):
@@ -331,3 +333,25 @@ def test_phases_are_more_patient_where_the_held_out_part_is_short():
         scores = report.validation_losses
         assert report.stop_reason == "patience"
         assert len(scores) - 1 - scores.index(min(scores)) == expected
+
+
+@pytest.mark.parametrize("optimizer", ["lbfgs", "adam"])
+def test_weight_decay_shrinks_the_networks_weights(optimizer):
+    """``weight_decay`` adds an L2 penalty on the linear layers' weights: the same training ends
+    with smaller weights and a network that still simulates the record better than its start."""
+    from torch_nssm.estimation.neural_first_stage import _weight_penalty
+
+    u, y, _, _ = _plant(400, 0)
+    data = _batch(u, y)
+    opt = dict(optimizer=optimizer, horizon=20, max_iter=60, eval_every=20, encoder_lags=5)
+    if optimizer == "lbfgs":
+        opt["max_horizon"] = 40
+    weights, reports = {}, {}
+    for decay in (0.0, 0.05):
+        f = MLPTransition(1, 1, hidden=(8,), random_state=0)
+        model = StateSpaceModel(f, Identity(), None, None, torch.zeros(1, dtype=DTYPE), None)
+        reports[decay] = neural_first_stage(model, data, NeuralFirstStageOptions(**opt, weight_decay=decay))
+        with torch.no_grad():
+            weights[decay] = float(_weight_penalty((f,), 1.0))
+    assert weights[0.05] < 0.8 * weights[0.0]
+    assert reports[0.05].accepted and reports[0.05].free_run_after < reports[0.05].free_run_before
