@@ -28,6 +28,10 @@ wall seconds beside them, because the machines these ran on were shared):
   plant's state scales as a user would from the physics) with the plant's own ``g``, fitted with
   the defaults (``fit`` trains the network by simulation error first), against the physical
   model's default fit; validation RMSE.
+* ``first-stage-spread`` -- the neural first stage alone over the pendulum family's records and
+  several network initialisations (``--records``, ``--net-seeds``), or over network seeds of the
+  suite's plants, for each ``--weight-decay``: validation RMSE, the training record's free run, the
+  best held-out score and CPU seconds.
 
 Usage::
 
@@ -35,6 +39,7 @@ Usage::
     python benchmarks/neural.py silverbox --out silverbox.json            # about 10 min per fit
     python benchmarks/neural.py suite --plants tanks,oscillator --out suite.json
     python benchmarks/neural.py pendulum-records --seeds 1,2,3,4           # about 5 min per seed
+    python benchmarks/neural.py first-stage-spread --plants pendulum,bouc_wen --weight-decay 0,1e-3
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
