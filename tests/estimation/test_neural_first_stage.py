@@ -197,6 +197,8 @@ def test_first_states_noise_levels_and_helpers():
         (dict(max_seconds=-1.0), "max_seconds"),
         (dict(weight_decay=-1e-3), "weight_decay"),
         (dict(weight_decay=math.nan), "weight_decay"),
+        (dict(weight_decay=math.inf), "weight_decay"),
+        (dict(weight_decay="1e-3"), "weight_decay"),
     ],
 )
 def test_bad_options_are_named(options, match):

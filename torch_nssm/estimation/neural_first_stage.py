@@ -189,8 +189,9 @@ class NeuralFirstStageOptions:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and value > 0):
                 raise ValueError(f"{name} must be > 0, got {value!r}")
-        if not (isinstance(self.weight_decay, (int, float)) and self.weight_decay >= 0):
-            raise ValueError(f"weight_decay must be a number >= 0, got {self.weight_decay!r}")
+        decay = self.weight_decay
+        if isinstance(decay, bool) or not isinstance(decay, (int, float)) or not 0 <= decay < math.inf:
+            raise ValueError(f"weight_decay must be a finite number >= 0, got {decay!r}")
         if self.max_seconds is not None and not self.max_seconds > 0:
             raise ValueError(f"max_seconds must be None or > 0, got {self.max_seconds!r}")
         if not all(isinstance(h, int) and h >= 1 for h in self.encoder_hidden):
