@@ -474,7 +474,7 @@ def first_stage_spread(
             if name == "pendulum":
                 n = 400 if quick else 2000
                 d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
-                x0_guess = np.zeros(2)
+                x0_guess = val_guess = np.zeros(2)
             else:
                 plant = PLANTS[name]
                 n, n_val = (plant.quick_train, plant.quick_validation) if quick else (
@@ -482,7 +482,7 @@ def first_stage_spread(
                     plant.n_validation,
                 )
                 d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
-                x0_guess = d.x0_guess
+                x0_guess, val_guess = d.x0_guess, d.validation.x0  # as the suite study
             v = d.validation
             for offset in offsets:
                 for decay in decays:
@@ -498,7 +498,7 @@ def first_stage_spread(
                         warnings.simplefilter("ignore")
                         warm, report = simulation_start(est, d.u, d.y, options=options, return_report=True)
                     cpu = clock.read()["cpu_s"]
-                    x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, x0_guess)
+                    x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, val_guess)
                     x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, x0_guess)
                     row = {
                         "plant": name,
