@@ -30,8 +30,8 @@ wall seconds beside them, because the machines these ran on were shared):
   model's default fit; validation RMSE.
 * ``first-stage-spread`` -- the neural first stage alone over the pendulum family's records and
   several network initialisations (``--records``, ``--net-seeds``), or over network seeds of the
-  suite's plants, for each ``--weight-decay``: validation RMSE, the training record's free run, the
-  best held-out score and CPU seconds.
+  suite's plants, for each ``--weight-decay`` (and a ``--validation-fraction``): validation RMSE,
+  the training record's free run, the best held-out score and CPU seconds.
 
 Usage::
 
@@ -454,9 +454,15 @@ def _suite_network(d, n: int, seed: int) -> MLPTransition:
 
 
 def first_stage_spread(
-    plants: list[str], records: list[int], offsets: list[int], decays: list[float], quick: bool
+    plants: list[str],
+    records: list[int],
+    offsets: list[int],
+    decays: list[float],
+    quick: bool,
+    validation_fraction: float = 0.15,
 ) -> list[dict[str, Any]]:
-    """The neural first stage alone (``simulation_start`` with the defaults but ``weight_decay``)
+    """The neural first stage alone (``simulation_start`` with the defaults but ``weight_decay`` and
+    ``validation_fraction``)
     over records and network initialisations: ``pendulum`` draws record ``r`` of the README's family
     and initialises the network with ``r + offset``; a suite plant keeps its record (seed 0) and
     initialises the network with ``offset``.  Validation RMSE of the free run from a first state
@@ -492,7 +498,9 @@ def first_stage_spread(
                     else:
                         f, g = _suite_network(d, n, seed), PLANTS[name].model(PLANTS[name].start)[1]
                     est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, random_state=0)
-                    options = NeuralFirstStageOptions(weight_decay=decay)
+                    options = NeuralFirstStageOptions(
+                        weight_decay=decay, validation_fraction=validation_fraction
+                    )
                     clock = Clock()
                     with warnings.catch_warnings():
                         warnings.simplefilter("ignore")
@@ -505,6 +513,7 @@ def first_stage_spread(
                         "record": record,
                         "network_seed": seed,
                         "weight_decay": decay,
+                        "validation_fraction": validation_fraction,
                         "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
                         "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
                         "held_out": min(report.validation_losses) if report.validation_losses else math.nan,
@@ -556,6 +565,7 @@ def main(argv=None) -> None:
     parser.add_argument("--records", default="0,1,2,3,4", help="first-stage-spread: pendulum records")
     parser.add_argument("--net-seeds", default="0,10,20", help="first-stage-spread: network seed offsets")
     parser.add_argument("--weight-decay", default="0,1e-3", help="first-stage-spread: weight decays")
+    parser.add_argument("--validation-fraction", type=float, default=0.15, help="first-stage-spread")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.study == "pendulum":
@@ -582,6 +592,7 @@ def main(argv=None) -> None:
             [int(a) for a in args.net_seeds.split(",")],
             [float(a) for a in args.weight_decay.split(",")],
             args.quick,
+            args.validation_fraction,
         )
     else:
         out = suite(args.plants.split(","), args.quick)

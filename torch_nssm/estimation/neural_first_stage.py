@@ -143,8 +143,8 @@ class NeuralFirstStageOptions:
         states) is added to the mean per-sample loss (default 0: none).  Measured with 1e-3: 7 of
         10 trainings on pendulum records of 2,000 samples improve and 2 get far worse; plants that
         need long training (Bouc-Wen, the suite's oscillator) lose, so it is not a default
-        (``benchmarks/README.md``, "Initialisations, weight decay and a linear bypass on short
-        records").
+        (``benchmarks/README.md``, "Initialisations, weight decay, a longer held-out end and a
+        linear bypass on short records").
     """
 
     optimizer: str = "lbfgs"
