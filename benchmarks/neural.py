@@ -462,12 +462,11 @@ def first_stage_spread(
     validation_fraction: float = 0.15,
 ) -> list[dict[str, Any]]:
     """The neural first stage alone (``simulation_start`` with the defaults but ``weight_decay`` and
-    ``validation_fraction``)
-    over records and network initialisations: ``pendulum`` draws record ``r`` of the README's family
-    and initialises the network with ``r + offset``; a suite plant keeps its record (seed 0) and
-    initialises the network with ``offset``.  Validation RMSE of the free run from a first state
-    fitted to the validation record's first 200 samples, the training record's free run (the same
-    rule), the best held-out score, CPU s."""
+    ``validation_fraction``) over records and network initialisations: ``pendulum`` draws record
+    ``r`` of the README's family and initialises the network with ``r + offset``; a suite plant
+    keeps its record (seed 0) and initialises the network with ``offset``.  Validation RMSE of the
+    free run from a first state fitted to the validation record's first 200 samples, the training
+    record's free run (the same rule), the best held-out score, CPU s."""
     from suite.plants import PLANTS
 
     from torch_nssm.datasets import make_pendulum, pendulum_model
@@ -481,23 +480,22 @@ def first_stage_spread(
                 n = 400 if quick else 2000
                 d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
                 x0_guess = val_guess = np.zeros(2)
+                g = pendulum_model()[1]
+                network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
+                seeds = [record + offset for offset in offsets]
             else:
                 plant = PLANTS[name]
-                n, n_val = (plant.quick_train, plant.quick_validation) if quick else (
-                    plant.n_train,
-                    plant.n_validation,
-                )
+                n = plant.quick_train if quick else plant.n_train
+                n_val = plant.quick_validation if quick else plant.n_validation
                 d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
                 x0_guess, val_guess = d.x0_guess, d.validation.x0  # as the suite study
+                g = plant.model(plant.start)[1]
+                network = lambda seed, d=d, n=n: _suite_network(d, n, seed)  # noqa: E731
+                seeds = list(offsets)
             v = d.validation
-            for offset in offsets:
+            for seed in seeds:
                 for decay in decays:
-                    seed = record + offset if name == "pendulum" else offset
-                    if name == "pendulum":
-                        f, g = MLPTransition(2, 1, hidden=(32,), random_state=seed), pendulum_model()[1]
-                    else:
-                        f, g = _suite_network(d, n, seed), PLANTS[name].model(PLANTS[name].start)[1]
-                    est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, random_state=0)
+                    est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
                     options = NeuralFirstStageOptions(
                         weight_decay=decay, validation_fraction=validation_fraction
                     )

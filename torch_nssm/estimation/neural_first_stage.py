@@ -222,10 +222,9 @@ class NeuralFirstStageReport:
         The iteration whose parameters were restored.
     train_losses, validation_losses : list of float
         Per evaluation: the training loss (LBFGS: the round's final loss, at its own Cauchy scale,
-        with the weight penalty;
-        Adam: the mean minibatch loss since the previous evaluation) and the held-out score
-        (trimmed RMS of the held-out free run's scaled output errors; of the training windows' when
-        nothing is held out).
+        with the weight penalty; Adam: the mean minibatch loss since the previous evaluation) and
+        the held-out score (trimmed RMS of the held-out free run's scaled output errors; of the
+        training windows' when nothing is held out).
     horizon : int
         The window length.
     n_windows : int
