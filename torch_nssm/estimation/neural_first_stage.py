@@ -140,11 +140,9 @@ class NeuralFirstStageOptions:
     weight_decay : float
         An L2 penalty on the network: ``weight_decay`` times the sum of the squared weights of the
         linear layers of ``f`` and ``g`` (not their biases, the encoder or the windows' first
-        states) is added to the mean per-sample loss (default 0: none).  Measured with 1e-3: 7 of
-        10 trainings on pendulum records of 2,000 samples improve and 2 get far worse; plants that
-        need long training (Bouc-Wen, the suite's oscillator) lose, so it is not a default
-        (``benchmarks/README.md``, "Initialisations, weight decay, a longer held-out end and a
-        linear bypass on short records").
+        states) is added to the mean per-sample loss (default 0: none; measured as mixed across
+        the suite's plants, ``benchmarks/README.md``, "Initialisations, weight decay, a longer
+        held-out end and a linear bypass on short records").
     """
 
     optimizer: str = "lbfgs"
