@@ -357,3 +357,102 @@ def test_weight_decay_shrinks_the_networks_weights(optimizer):
             weights[decay] = float(_weight_penalty((f,), 1.0))
     assert weights[0.05] < 0.8 * weights[0.0]
     assert reports[0.05].accepted and reports[0.05].free_run_after < reports[0.05].free_run_before
+
+
+def test_the_kept_iterate_weighs_the_whole_records_free_run():
+    """With whole-record free-run scores the kept iterate has the best held-out score among the
+    evaluations whose free run is within ``FREE_RUN_SLACK`` of the best one (checked against a
+    brute-force choice after every evaluation, NaN scores included), unless its held-out score is
+    more than ``HELD_OUT_GUARD`` times the best; without them, the best held-out score; the early
+    stop's best score follows the held-out score alone."""
+    from torch_nssm.estimation.neural_first_stage import FREE_RUN_SLACK, HELD_OUT_GUARD, _Best
+
+    rng = np.random.default_rng(0)
+    net = torch.nn.Linear(1, 1)
+    for trial in range(20):
+        with_free = trial % 4 != 3
+        best, seen = _Best((net,)), []
+        for it in range(1, 41):
+            held, free = rng.lognormal(0.0, 0.5, size=2)
+            if rng.random() < 0.1:
+                held = math.nan
+            if rng.random() < 0.1:
+                free = math.inf
+            with torch.no_grad():
+                net.bias.fill_(float(it))  # the snapshot names its iteration
+            best.record(0.0, held, it, free if with_free else None)
+            seen.append((it, held, free))
+            held_best = [s for s in seen if math.isfinite(s[1])]
+            expected = min(held_best, key=lambda s: s[1])[0] if held_best else 0
+            both = [s for s in held_best if math.isfinite(s[2])]
+            if with_free and both:
+                floor = min(s[2] for s in both)
+                pick = min([s for s in both if s[2] <= FREE_RUN_SLACK * floor], key=lambda s: s[1])
+                if pick[1] <= HELD_OUT_GUARD * min(s[1] for s in held_best):
+                    expected = pick[0]
+            assert best.kept_iteration == expected
+            assert best.score == (min(s[1] for s in held_best) if held_best else math.inf)
+        best.restore()
+        assert float(net.bias.detach()) == best.kept_iteration
+        assert len(best.free_runs) == (40 if with_free else 0)
+
+
+def test_short_held_out_parts_keep_by_the_free_run_too(trained):
+    """A short record's report scores the whole free run at every evaluation, and the parameters
+    kept are the rule's choice: their free run (``free_run_after``) is that evaluation's."""
+    from torch_nssm.estimation.neural_first_stage import (
+        FREE_RUN_SLACK,
+        HELD_OUT_GUARD,
+        _robust_center_scale,
+    )
+
+    report = trained["mlp"][1]
+    assert len(report.free_runs) == report.evaluations == len(report.validation_losses)
+    floor = min(report.free_runs)
+    eligible = [i for i, w in enumerate(report.free_runs) if w <= FREE_RUN_SLACK * floor]
+    kept = min(eligible, key=lambda i: report.validation_losses[i])
+    if report.validation_losses[kept] > HELD_OUT_GUARD * min(report.validation_losses):
+        kept = int(np.argmin(report.validation_losses))
+    u, y, _, _ = _plant(400, 0, outliers=0.05)
+    _, scale = _robust_center_scale(torch.as_tensor(y, dtype=DTYPE).reshape(-1, 1))
+    assert report.free_run_after == pytest.approx(report.free_runs[kept] * float(scale), rel=1e-9)
+
+
+def test_the_kept_iterates_free_run_runs_long_records_in_stretches():
+    """The free-run score is the whole records' free run from the first windows' states where the
+    records are shorter than ``FREE_RUN_SPAN`` (equal to ``_Problem.record_errors``'s), and on
+    longer ones the stretches' free runs from the windows that start them, run side by side
+    (equal to running each stretch alone), the held-out end in each record's last stretch."""
+    from torch_nssm.estimation.neural_first_stage import FREE_RUN_SPAN, _Problem, _simulate, _Tiling
+
+    f = MLPTransition(1, 1, hidden=(8,), random_state=0)
+    model = StateSpaceModel(f, Identity(), None, None, torch.zeros(1, dtype=DTYPE), None)
+    rng = np.random.default_rng(1)
+
+    def batch(lengths):
+        us = [torch.as_tensor(rng.normal(size=(n, 1))) for n in lengths]
+        ys = [torch.as_tensor(rng.normal(size=(n, 1))) for n in lengths]
+        ys[0][5] = math.nan  # a missing output
+        return SequenceBatch.from_sequences(us, ys)
+
+    for lengths, H in (([2000, 1500], 50), ([2000], 1600), ([9000, 3000], 50), ([9000, 3000], 1600)):
+        problem = _Problem(model, batch(lengths), NeuralFirstStageOptions())
+        tiling = _Tiling(problem, H, torch.ones(1, dtype=DTYPE))
+        tiling.start_at(torch.as_tensor(rng.normal(size=(len(tiling.spans), 1))))
+        score = tiling.free_run(f, model.g)
+        span = H * max(1, FREE_RUN_SPAN // H)
+        errors = []
+        for i, (b, k) in enumerate(tiling.spans):
+            if k % span:
+                continue
+            n, end = int(problem.lengths[b]), int(problem.lengths[b] - problem.n_val[b])
+            stop = n if k + span >= end else k + span
+            y_hat, _ = _simulate(f, model.g, tiling.x[i : i + 1], problem.u[k:stop, b].unsqueeze(0))
+            e, mask = problem.errors(problem.y[k:stop, b], y_hat[0])
+            errors.append(torch.where(mask, e, torch.full_like(e, math.nan)))
+        assert score == pytest.approx(trimmed_rms(torch.cat(errors)), rel=1e-12)
+        whole = trimmed_rms(problem.record_errors(f, model.g, tiling.x[tiling.first]))
+        if max(lengths) <= FREE_RUN_SPAN:
+            assert score == pytest.approx(whole, rel=1e-12)
+        else:
+            assert len(errors) > len(lengths) and score != pytest.approx(whole, rel=1e-3)
