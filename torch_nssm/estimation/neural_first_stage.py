@@ -42,6 +42,7 @@ The entry point is :func:`neural_first_stage`; design notes: ``docs/design.md`` 
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -482,6 +483,16 @@ class _Problem:
         mask = ~torch.isnan(y_obs)
         return (torch.nan_to_num(y_obs) - y_hat) / self.y_scale, mask
 
+    def stretches(self, rec: Tensor, k0: Tensor, k1: Tensor, length: int) -> tuple[Tensor, Tensor]:
+        """Inputs and outputs ``(n, length, nu)``, ``(n, length, p)`` of samples ``k0 .. k1 - 1``
+        of records ``rec`` (all ``(n,)``); past ``k1``, zero inputs and missing outputs."""
+        t = k0[:, None] + torch.arange(length, device=k0.device)
+        inside = (t < k1[:, None]).unsqueeze(-1)
+        t = t.clamp(max=self.u.shape[0] - 1)
+        u = torch.where(inside, self.u[t, rec[:, None]], torch.zeros_like(self.u[:1, 0]))
+        y = torch.where(inside, self.y[t, rec[:, None]], torch.full_like(self.y[:1, 0], math.nan))
+        return u, y
+
     def held_out(self, f, g, b: int, x: Tensor, k: int | None = None) -> Tensor:
         """Scaled free-run errors of record ``b``'s held-out part (NaN where ``y`` is missing), the
         run starting at sample ``k`` (default: the held-out part's first) from state ``x`` ``(nx,)``."""
@@ -688,13 +699,7 @@ class _Tiling:
         self.spans = [(b, k) for b in range(problem.B) for k in range(0, int(ends[b]), H)]
         self.rec = torch.tensor([s[0] for s in self.spans], device=dev)
         self.k0 = torch.tensor([s[1] for s in self.spans], device=dev)
-        t = self.k0[:, None] + torch.arange(H, device=dev)
-        inside = (t < torch.as_tensor(ends, device=dev)[self.rec][:, None]).unsqueeze(-1)
-        t = t.clamp(max=problem.u.shape[0] - 1)
-        self.u = torch.where(inside, problem.u[t, self.rec[:, None]], torch.zeros_like(problem.u[:1, 0]))
-        self.y = torch.where(
-            inside, problem.y[t, self.rec[:, None]], torch.full_like(problem.y[:1, 0], math.nan)
-        )
+        self.u, self.y = problem.stretches(self.rec, self.k0, torch.as_tensor(ends, device=dev)[self.rec], H)
         self.first = [self.spans.index((b, 0)) for b in range(problem.B)]
         self.last = {b: max(i for i, s in enumerate(self.spans) if s[0] == b) for b in problem.val_records}
         self.state_scale = state_scale
@@ -713,25 +718,26 @@ class _Tiling:
         """Scaled output errors of the windows' simulations ``(n, H, p)`` and where ``y`` is observed."""
         return self.problem.errors(self.y, _simulate(f, g, self.x, self.u)[0])
 
+    @functools.cached_property
+    def _free_run_stretches(self) -> tuple[Tensor, Tensor, Tensor]:
+        """The windows starting the free run's stretches (every ``FREE_RUN_SPAN`` samples or so),
+        and the stretches' inputs and outputs, each record's last one to its end."""
+        problem, dev = self.problem, self.k0.device
+        span = self.H * max(1, FREE_RUN_SPAN // self.H)
+        first = torch.tensor([i for i, (_, k) in enumerate(self.spans) if k % span == 0], device=dev)
+        rec, k0 = self.rec[first], self.k0[first]
+        ends = (problem.lengths - problem.n_val).to(dev)[rec]
+        k1 = torch.where(k0 + span >= ends, problem.lengths.to(dev)[rec], k0 + span)
+        return (first, *problem.stretches(rec, k0, k1, int((k1 - k0).max())))
+
     @torch.no_grad()
     def free_run(self, f, g) -> float:
         """Trimmed RMS of each record's free run, held-out end included, in stretches of about
         ``FREE_RUN_SPAN`` samples (the whole record where it is shorter), each from the fitted
         state of the window that starts it: the stretches run side by side, so the cost per
         evaluation stays bounded on long records."""
-        problem, dev = self.problem, self.k0.device
-        span = self.H * max(1, FREE_RUN_SPAN // self.H)
-        first = torch.tensor([i for i, (_, k) in enumerate(self.spans) if k % span == 0], device=dev)
-        rec, k0 = self.rec[first], self.k0[first]
-        lengths = problem.lengths.to(dev)[rec]
-        ends = (problem.lengths - problem.n_val).to(dev)[rec]
-        k1 = torch.where(k0 + span >= ends, lengths, k0 + span)  # the last stretch: to the end
-        t = k0[:, None] + torch.arange(int((k1 - k0).max()), device=dev)
-        inside = (t < k1[:, None]).unsqueeze(-1)
-        t = t.clamp(max=problem.u.shape[0] - 1)
-        u = torch.where(inside, problem.u[t, rec[:, None]], torch.zeros_like(problem.u[:1, 0]))
-        y = torch.where(inside, problem.y[t, rec[:, None]], torch.full_like(problem.y[:1, 0], math.nan))
-        e, mask = problem.errors(y, _simulate(f, g, self.x[first], u)[0])
+        first, u, y = self._free_run_stretches
+        e, mask = self.problem.errors(y, _simulate(f, g, self.x[first], u)[0])
         return trimmed_rms(torch.where(mask, e, torch.full_like(e, math.nan)))
 
     @torch.no_grad()
