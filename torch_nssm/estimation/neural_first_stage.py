@@ -109,7 +109,7 @@ FREE_RUN_SLACK = 1.2
 #: 26 trainings' snapshots), and the best held-out score's iterate is kept.
 HELD_OUT_GUARD = 2.0
 #: The free run of ``FREE_RUN_SLACK`` runs a long record in stretches of about this many samples,
-#: side by side, each from its first window's fitted state: longer than the records the rule was
+#: side by side, each from its first window's fitted state: longer than the records the rule is
 #: measured on (2,000-3,000 samples, run whole); on the suite's axis (25,000 samples) 6 stretches
 #: instead of one run of 25,000 steps per evaluation, which doubled the first stage's CPU.
 FREE_RUN_SPAN = 4000
@@ -538,7 +538,7 @@ class _Best:
         return _state(*self.modules), extra
 
     def record(self, train_loss: float, score: float, iteration: int, free_run: float | None = None) -> None:
-        """One evaluation: the round's training loss, its held-out score and (optionally) the whole
+        """One evaluation: its training loss, its held-out score and (optionally) the whole
         records' free-run score."""
         self.train.append(train_loss)
         self.held_out.append(score)
