@@ -185,6 +185,54 @@ def test_gradients_flow(nu):
     assert gb.correction(x, u).abs().max() > 0
 
 
+def _rollout(step, block: nn.Module, x0: torch.Tensor, T: int) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """States of ``T`` steps of ``step(x, t)`` from ``x0`` and the gradients of a nonlinear
+    function of them with respect to ``x0`` and the parameters of ``block``."""
+    states, x = [], x0
+    for t in range(T):
+        x = step(x, t)
+        states.append(x)
+    xs = torch.stack(states, 1)
+    loss = (xs.sin() ** 2).sum() + xs[:, -1].prod(-1).sum()
+    return xs.detach(), list(torch.autograd.grad(loss, [x0, *block.parameters()]))
+
+
+@pytest.mark.parametrize(
+    "kwargs", [dict(nu=1, hidden=(32,)), dict(nu=0, hidden=(8, 8), activation="relu"), dict(nu=2, hidden=())]
+)
+def test_step_function_is_bit_identical_to_calling_the_module(kwargs):
+    nu = kwargs.pop("nu")
+    f = MLPTransition(2, nu, x_mean=[0.3, -1.0], x_scale=[2.0, 0.5], u_mean=0.1, u_scale=3.0, random_state=1,
+                      last_layer_scale=1.0, **kwargs)
+    u = torch.randn(7, 30, nu, dtype=DTYPE)
+    x0 = torch.randn(7, 2, dtype=DTYPE, requires_grad=True)
+    xs_ref, g_ref = _rollout(lambda x, t: f(x, u[:, t]), f, x0, 30)
+    xs, g = _rollout(f.step_function(u), f, x0, 30)
+    assert torch.equal(xs, xs_ref)
+    assert all(torch.equal(a, b) for a, b in zip(g, g_ref))
+    assert xs.abs().max() > 0 and all(a.abs().sum() > 0 for a in g[:2])
+
+
+def test_step_function_calls_the_module_where_the_shortcut_would_skip_something():
+    u = torch.randn(3, 5, 1, dtype=DTYPE)
+    x = torch.randn(3, 2, dtype=DTYPE)
+    calls = []
+    f = MLPTransition(2, 1, hidden=(4,), random_state=0)
+    handle = f.net[0].register_forward_hook(lambda *a: calls.append(1))
+    f.step_function(u)(x, 0)
+    assert calls == [1]  # the hook ran
+    handle.remove()
+    f.step_function(u)(x, 0)
+    assert calls == [1]  # no hook: the shortcut
+
+    class Doubled(MLPTransition):
+        def forward(self, x, u):
+            return 2 * super().forward(x, u)
+
+    d = Doubled(2, 1, hidden=(4,), random_state=0)
+    assert torch.equal(d.step_function(u)(x, 2), d(x, u[:, 2]))
+
+
 def test_invalid_arguments():
     with pytest.raises(ValueError, match="activation"):
         MLPTransition(1, 1, activation="nope")

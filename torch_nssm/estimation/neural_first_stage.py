@@ -402,11 +402,21 @@ def _robust_center_scale(values: Tensor) -> tuple[Tensor, Tensor]:
 def _simulate(f: nn.Module, g: nn.Module, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Noise-free outputs ``(n, T, p)`` of windows with first states ``x`` ``(n, nx)`` and inputs
     ``u`` ``(n, T, nu)``, and the state after the last step ``(n, nx)``."""
+    step = _step_function(f, x, u)
     outputs = []
     for t in range(u.shape[1]):
         outputs.append(g(x, u[:, t]))
-        x = f(x, u[:, t])
+        x = step(x, t)
     return torch.stack(outputs, dim=1), x
+
+
+def _step_function(f: nn.Module, x: Tensor, u: Tensor):
+    """``step(x, t) = f(x, u[:, t])``: the network's own faster step where it has one
+    (:meth:`~torch_nssm.neural.MLPTransition.step_function`; the same numbers, bit for bit)."""
+    own = getattr(f, "step_function", None)
+    if callable(own) and x.dim() == 2 and u.dim() == 3 and x.shape[0] == u.shape[0]:
+        return own(u)
+    return lambda x, t: f(x, u[:, t])
 
 
 def _free_params(*modules: nn.Module) -> list[Tensor]:
