@@ -197,13 +197,19 @@ def _rollout(step, block: nn.Module, x0: torch.Tensor, T: int) -> tuple[torch.Te
     return xs.detach(), list(torch.autograd.grad(loss, [x0, *block.parameters()]))
 
 
+@pytest.mark.parametrize("grey", [False, True])
 @pytest.mark.parametrize(
     "kwargs", [dict(nu=1, hidden=(32,)), dict(nu=0, hidden=(8, 8), activation="relu"), dict(nu=2, hidden=())]
 )
-def test_step_function_is_bit_identical_to_calling_the_module(kwargs):
+def test_step_function_is_bit_identical_to_calling_the_module(kwargs, grey):
+    kwargs = dict(kwargs)  # the parametrised dict is shared between the cases
     nu = kwargs.pop("nu")
-    f = MLPTransition(2, nu, x_mean=[0.3, -1.0], x_scale=[2.0, 0.5], u_mean=0.1, u_scale=3.0, random_state=1,
-                      last_layer_scale=1.0, **kwargs)
+    norm = dict(x_mean=[0.3, -1.0], x_scale=[2.0, 0.5], u_mean=0.1, u_scale=3.0)
+    norm.update(random_state=1, last_layer_scale=1.0)
+    if grey:
+        f = GreyBoxTransition(_LinearPhysical(2, nu), 2, nu, **norm, **kwargs)
+    else:
+        f = MLPTransition(2, nu, **norm, **kwargs)
     u = torch.randn(7, 30, nu, dtype=DTYPE)
     x0 = torch.randn(7, 2, dtype=DTYPE, requires_grad=True)
     xs_ref, g_ref = _rollout(lambda x, t: f(x, u[:, t]), f, x0, 30)
@@ -231,6 +237,11 @@ def test_step_function_calls_the_module_where_the_shortcut_would_skip_something(
 
     d = Doubled(2, 1, hidden=(4,), random_state=0)
     assert torch.equal(d.step_function(u)(x, 2), d(x, u[:, 2]))
+    # a grey box's physical part is called as a module (its hooks run)
+    gb = GreyBoxTransition(_LinearPhysical(2, 1), 2, 1, hidden=(4,), random_state=0)
+    gb.physical.register_forward_hook(lambda *a: calls.append(2))
+    gb.step_function(u)(x, 0)
+    assert calls == [1, 2]
 
 
 def test_invalid_arguments():

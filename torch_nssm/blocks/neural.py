@@ -181,6 +181,38 @@ class _NeuralBlock(nn.Module):
     def extra_repr(self) -> str:
         return f"nx={self.nx}, nu={self.nu}"
 
+    def _increment_function(self, u: Tensor) -> Callable[[Tensor, int], Tensor] | None:
+        """``increment(x, t)``, equal bit for bit to ``out_scale * net(normalised_input(x, u[:, t]))``
+        (the transitions' network term; ``x`` ``(n, nx)``, ``u`` ``(n, T, nu)``), or ``None`` where
+        calling the layers directly would skip something (hooks, a compiled module, a subclass's
+        own normalisation)."""
+        layers = list(self.net)
+        plain = (
+            type(self).normalised_input is _NeuralBlock.normalised_input
+            and type(self.net) is nn.Sequential
+            and _forward_only(self, self.net, *layers)
+        )
+        if not plain:
+            return None
+        u_norm = (u - self.u_mean) / self.u_scale
+        # F.linear of a matrix with a bias is addmm(bias, input, weight.t()): the transposes are
+        # taken once here instead of at every step (fewer graph nodes to differentiate)
+        calls = [
+            (layer.bias, layer.weight.t())
+            if type(layer) is nn.Linear and layer.bias is not None
+            else layer.forward
+            for layer in layers
+        ]
+        x_mean, x_scale, out_scale = self.x_mean, self.x_scale, self.out_scale
+
+        def increment(x: Tensor, t: int) -> Tensor:
+            h = torch.cat([(x - x_mean) / x_scale, u_norm[:, t]], dim=-1)
+            for call in calls:
+                h = torch.addmm(call[0], h, call[1]) if isinstance(call, tuple) else call(h)
+            return out_scale * h
+
+        return increment
+
     def _add_step_network(
         self, hidden, activation, last_layer_scale, out_scale, random_state, dtype, device
     ) -> None:
@@ -287,33 +319,10 @@ class MLPTransition(_NeuralBlock):
         small network (most of a step is call overhead there).  Where that would skip something (a
         subclass's own ``forward``, hooks, a compiled module) the step calls the module.
         """
-        layers = list(self.net)
-        plain = (
-            type(self).forward is MLPTransition.forward
-            and type(self).normalised_input is _NeuralBlock.normalised_input
-            and type(self.net) is nn.Sequential
-            and _forward_only(self, self.net, *layers)
-        )
-        if not plain:
+        increment = self._increment_function(u) if type(self).forward is MLPTransition.forward else None
+        if increment is None:
             return lambda x, t: self(x, u[:, t])
-        u_norm = (u - self.u_mean) / self.u_scale
-        # F.linear of a matrix with a bias is addmm(bias, input, weight.t()): the transposes are
-        # taken once here instead of at every step (fewer graph nodes to differentiate)
-        calls = [
-            (layer.bias, layer.weight.t())
-            if type(layer) is nn.Linear and layer.bias is not None
-            else layer.forward
-            for layer in layers
-        ]
-        x_mean, x_scale, out_scale = self.x_mean, self.x_scale, self.out_scale
-
-        def step(x: Tensor, t: int) -> Tensor:
-            h = torch.cat([(x - x_mean) / x_scale, u_norm[:, t]], dim=-1)
-            for call in calls:
-                h = torch.addmm(call[0], h, call[1]) if isinstance(call, tuple) else call(h)
-            return x + out_scale * h
-
-        return step
+        return lambda x, t: x + increment(x, t)
 
     @torch.no_grad()
     def fit_normalisation(self, x: ArrayLike, u: ArrayLike = None, x_next: ArrayLike = None) -> MLPTransition:
@@ -545,6 +554,17 @@ class GreyBoxTransition(_NeuralBlock):
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         """Next-state mean, shape ``(..., nx)``."""
         return self.physical(x, u) + self.out_scale * self.net(self.normalised_input(x, u))
+
+    def step_function(self, u: Tensor) -> Callable[[Tensor, int], Tensor]:
+        """``step(x, t)``, equal bit for bit to ``self(x, u[:, t])`` with ``x`` of shape ``(n, nx)``,
+        for simulating over inputs ``u`` of shape ``(n, T, nu)``: the network's term as in
+        :meth:`MLPTransition.step_function`, ``physical`` called as a module."""
+        fast = type(self).forward is GreyBoxTransition.forward
+        increment = self._increment_function(u) if fast else None
+        if increment is None:
+            return lambda x, t: self(x, u[:, t])
+        physical = self.physical
+        return lambda x, t: physical(x, u[:, t]) + increment(x, t)
 
     def correction(self, x: Tensor, u: Tensor) -> Tensor:
         """The neural part alone, ``out_scale * MLP([x_norm, u_norm])``, shape ``(..., nx)``."""
