@@ -230,6 +230,13 @@ def test_step_function_calls_the_module_where_the_shortcut_would_skip_something(
     handle.remove()
     f.step_function(u)(x, 0)
     assert calls == [1]  # no hook: the shortcut
+    handle = nn.modules.module.register_module_forward_hook(lambda *a: calls.append(0))
+    try:
+        f.step_function(u)(x, 0)
+    finally:
+        handle.remove()
+    assert calls == [1] + [0] * 5  # a global hook runs on the block, the MLP and its three layers
+    del calls[1:]
 
     class Doubled(MLPTransition):
         def forward(self, x, u):

@@ -121,19 +121,17 @@ def _mean_std(t: Tensor) -> tuple[Tensor, Tensor]:
     return mean, torch.where(tiny | ~torch.isfinite(std), torch.ones_like(std), std)
 
 
+_HOOKS = ("_forward_hooks", "_forward_pre_hooks", "_backward_hooks", "_backward_pre_hooks")
+
+
 def _forward_only(*modules: nn.Module) -> bool:
     """Whether calling each module runs its ``forward`` and nothing else: no hooks (its own or
-    global), not compiled, not traced."""
-    has_global = getattr(torch.nn.modules.module, "_has_any_global_hook", None)
-    if has_global is None or has_global() or torch._C._get_tracing_state():
+    global: what ``nn.Module.__call__`` checks), not compiled, not traced."""
+    registry = torch.nn.modules.module
+    if any(getattr(registry, "_global" + name, None) for name in _HOOKS) or torch._C._get_tracing_state():
         return False
     return not any(
-        m._forward_hooks
-        or m._forward_pre_hooks
-        or m._backward_hooks
-        or m._backward_pre_hooks
-        or getattr(m, "_compiled_call_impl", None) is not None
-        for m in modules
+        getattr(m, name, None) for m in modules for name in (*_HOOKS, "_compiled_call_impl")
     )
 
 

@@ -45,6 +45,7 @@ import copy
 import functools
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import torch
@@ -410,9 +411,9 @@ def _simulate(f: nn.Module, g: nn.Module, x: Tensor, u: Tensor) -> tuple[Tensor,
     return torch.stack(outputs, dim=1), x
 
 
-def _step_function(f: nn.Module, x: Tensor, u: Tensor):
-    """``step(x, t) = f(x, u[:, t])``: the network's own faster step where it has one
-    (:meth:`~torch_nssm.neural.MLPTransition.step_function`; the same numbers, bit for bit)."""
+def _step_function(f: nn.Module, x: Tensor, u: Tensor) -> Callable[[Tensor, int], Tensor]:
+    """``step(x, t) = f(x, u[:, t])``: the module's own ``step_function(u)`` where it has one
+    (:meth:`~torch_nssm.neural.MLPTransition.step_function`: the same numbers, bit for bit, faster)."""
     own = getattr(f, "step_function", None)
     if callable(own) and x.dim() == 2 and u.dim() == 3 and x.shape[0] == u.shape[0]:
         return own(u)
