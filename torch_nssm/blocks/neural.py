@@ -179,14 +179,15 @@ class _NeuralBlock(nn.Module):
     def extra_repr(self) -> str:
         return f"nx={self.nx}, nu={self.nu}"
 
-    def _increment_function(self, u: Tensor) -> Callable[[Tensor, int], Tensor] | None:
+    def _increment_function(self, u: Tensor, block: type) -> Callable[[Tensor, int], Tensor] | None:
         """``increment(x, t)``, equal bit for bit to ``out_scale * net(normalised_input(x, u[:, t]))``
         (the transitions' network term; ``x`` ``(n, nx)``, ``u`` ``(n, T, nu)``), or ``None`` where
-        calling the layers directly would skip something (hooks, a compiled module, a subclass's
-        own normalisation)."""
+        calling the layers directly would skip something: hooks, a compiled module, a subclass's own
+        ``forward`` (other than ``block``'s, whose step the caller builds) or normalisation."""
         layers = list(self.net)
         plain = (
-            type(self).normalised_input is _NeuralBlock.normalised_input
+            type(self).forward is block.forward
+            and type(self).normalised_input is _NeuralBlock.normalised_input
             and type(self.net) is nn.Sequential
             and _forward_only(self, self.net, *layers)
         )
@@ -317,7 +318,7 @@ class MLPTransition(_NeuralBlock):
         small network (most of a step is call overhead there).  Where that would skip something (a
         subclass's own ``forward``, hooks, a compiled module) the step calls the module.
         """
-        increment = self._increment_function(u) if type(self).forward is MLPTransition.forward else None
+        increment = self._increment_function(u, MLPTransition)
         if increment is None:
             return lambda x, t: self(x, u[:, t])
         return lambda x, t: x + increment(x, t)
@@ -557,8 +558,7 @@ class GreyBoxTransition(_NeuralBlock):
         """``step(x, t)``, equal bit for bit to ``self(x, u[:, t])`` with ``x`` of shape ``(n, nx)``,
         for simulating over inputs ``u`` of shape ``(n, T, nu)``: the network's term as in
         :meth:`MLPTransition.step_function`, ``physical`` called as a module."""
-        fast = type(self).forward is GreyBoxTransition.forward
-        increment = self._increment_function(u) if fast else None
+        increment = self._increment_function(u, GreyBoxTransition)
         if increment is None:
             return lambda x, t: self(x, u[:, t])
         physical = self.physical

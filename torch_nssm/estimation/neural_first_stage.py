@@ -541,7 +541,7 @@ class _Best:
         self.held_out: list[float] = []
         self.free_runs: list[float] = []
         self.state = self._snapshot()
-        self._held_best = (self.state, 0)  # the best held-out score's parameters and iteration
+        self._held_best = self.state  # the parameters of the best held-out score (at self.iteration)
         self._front: list[tuple[float, float, int, tuple]] = []  # (free run, held-out, iteration, state)
 
     def _snapshot(self):
@@ -555,13 +555,13 @@ class _Best:
         self.held_out.append(score)
         if math.isfinite(score) and score < self.score:
             self.score, self.iteration, self.bad = score, iteration, 0
-            self._held_best = (self._snapshot(), iteration)
+            self._held_best = self._snapshot()
         else:
             self.bad += 1
         if free_run is not None:
             self.free_runs.append(free_run)
             self._update_front(free_run, score, iteration)
-        self.state, self.kept_iteration = self._held_best
+        self.state, self.kept_iteration = self._held_best, self.iteration
         if self._front:
             _, held, iteration, state = min(self._front, key=lambda c: c[1])
             if held <= HELD_OUT_GUARD * self.score:
