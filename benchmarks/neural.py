@@ -1,6 +1,6 @@
 """Neural transition models: the README's recipe against its baselines.
 
-Three studies, each a subcommand (one torch thread; times are CPU seconds of this process, with the
+The studies, each a subcommand (one torch thread; times are CPU seconds of this process, with the
 wall seconds beside them, because the machines these ran on were shared):
 
 * ``pendulum`` -- the suite's damped pendulum (2,000 samples, 3 % outliers, validation record of
@@ -32,6 +32,10 @@ wall seconds beside them, because the machines these ran on were shared):
   several network initialisations (``--records``, ``--net-seeds``), or over network seeds of the
   suite's plants, for each ``--weight-decay`` (and a ``--validation-fraction``): validation RMSE,
   the training record's free run, the best held-out score and CPU seconds.
+* ``first-stage-starts`` -- the neural first stage from several starts of the network (as built;
+  trained one step ahead on the true states, an oracle; ``distilled_start`` with a linear or the
+  physical reference; one step ahead in delay coordinates of the output): what the start is worth,
+  and whether a start a user can build reaches it (``--record-length`` for longer suite records).
 
 Usage::
 
@@ -40,12 +44,14 @@ Usage::
     python benchmarks/neural.py suite --plants tanks,oscillator --out suite.json
     python benchmarks/neural.py pendulum-records --seeds 1,2,3,4           # about 5 min per seed
     python benchmarks/neural.py first-stage-spread --plants pendulum,bouc_wen --weight-decay 0,1e-3
+    python benchmarks/neural.py first-stage-starts --plants oscillator,bouc_wen
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import math
 import sys
@@ -528,6 +534,150 @@ def first_stage_spread(
     return rows
 
 
+#: The starts ``first-stage-starts`` compares (see its docstring).
+STARTS = ("defaults", "true-states", "linear-reference", "physical-reference", "delay-coordinates")
+
+
+def _one_step_fit(net: MLPTransition, states: np.ndarray, u: np.ndarray, max_iter: int = 3000) -> None:
+    """Train ``net`` one step ahead on a state sequence ``(N, nx)`` (least squares of the steps
+    scaled by their spread; full-batch LBFGS)."""
+    X, U = _t(states), _t(u.reshape(len(states), -1))
+    scale = _t(np.diff(states, axis=0).std(0) + 1e-12)
+    opt = torch.optim.LBFGS(
+        net.parameters(), max_iter=max_iter, line_search_fn="strong_wolfe",
+        tolerance_grad=1e-12, tolerance_change=1e-15, history_size=100,
+    )
+
+    def closure():
+        opt.zero_grad()
+        loss = (((net(X[:-1], U[:-1]) - X[1:]) / scale) ** 2).mean()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+
+
+def _delay_states(y: np.ndarray, nx: int) -> np.ndarray:
+    """``(y_k, y_{k-1}, ..., y_{k-nx+1})`` of the first output (the first rows repeat ``y_0``)."""
+    col = np.asarray(y, dtype=float).reshape(len(y), -1)[:, 0]
+    return np.stack([np.concatenate([np.full(j, col[0]), col[: len(col) - j]]) for j in range(nx)], axis=1)
+
+
+def _started_estimator(start: str, d, g, f_phys, network, seed: int, x0_guess) -> RobustNSSMEstimator | None:
+    """The estimator whose ``f`` the first stage then trains, for one of ``STARTS`` (``None``
+    where the start does not apply: delay coordinates need a ``g`` that reads the first state)."""
+    u, n = np.asarray(d.u), len(d.y)
+    if start == "defaults":
+        return RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
+    if start in ("linear-reference", "physical-reference"):
+        est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
+        kw = {"reference_f": copy.deepcopy(f_phys)} if start == "physical-reference" else {}
+        return distilled_start(est, d.u, d.y, random_state=0, **kw)
+    if start == "true-states":
+        states = np.asarray(d.x)
+    else:
+        nx = len(np.asarray(x0_guess).reshape(-1))
+        probe = torch.randn(5, nx, dtype=torch.float64)
+        with torch.no_grad():
+            out = g(probe, torch.zeros(5, u.reshape(n, -1).shape[1], dtype=torch.float64))
+        reads_first = torch.equal(out, probe[:, :1])
+        if not reads_first:
+            return None
+        states = _delay_states(d.y, nx)
+    dx = np.diff(states, axis=0)
+    uu = u.reshape(n, -1)
+    net = MLPTransition(
+        states.shape[1], uu.shape[1], hidden=(32,), x_mean=states.mean(0), x_scale=states.std(0) + 1e-12,
+        u_mean=uu.mean(0), u_scale=uu.std(0) + 1e-12, out_scale=dx.std(0) + 1e-12, random_state=seed,
+    )
+    _one_step_fit(net, states, u)
+    return RobustNSSMEstimator(net, g, x0_mean=states[0], random_state=0)
+
+
+def first_stage_starts(
+    plants: list[str], records: list[int], starts: list[str], quick: bool, n_train: int | None = None
+) -> list[dict[str, Any]]:
+    """The neural first stage (``simulation_start``, the defaults) from several starts of the
+    network, on clean records (the pendulum family's ``records`` with their 3 % outliers):
+
+    * ``defaults``: the network as built (the suite study's, or the README's recipe);
+    * ``true-states``: trained one step ahead on the record's true states (an oracle: a bound on
+      what a start can give, not something a user has);
+    * ``linear-reference`` / ``physical-reference``: ``distilled_start`` with its linear reference
+      or the plant's physical model at its start parameters as the reference;
+    * ``delay-coordinates``: trained one step ahead on ``(y_k, ..., y_{k-nx+1})`` of the measured
+      output (where ``g`` reads the first state).
+
+    Validation RMSE of the start's network and of the trained one, the training record's free run,
+    CPU s of the start and of the first stage.  ``n_train``: the suite plants' training length."""
+    from suite.plants import PLANTS
+
+    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
+
+    rows: list[dict[str, Any]] = []
+    print(f"{'plant':>18} {'record':>6} {'start':>18} {'start val.':>10} {'validation':>10} {'training':>9} "
+          f"{'CPU start':>9} {'CPU stage':>9} {'iter.':>5}", flush=True)
+    for name in plants:
+        for record in records if name == "pendulum" else [0]:
+            if name == "pendulum":
+                n = 400 if quick else 2000
+                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
+                x0_guess = val_guess = np.zeros(2)
+                f_phys, g = pendulum_model(PENDULUM_START)
+                network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
+                seed = record
+            else:
+                plant = PLANTS[name]
+                n = plant.quick_train if quick else (n_train or plant.n_train)
+                n_val = plant.quick_validation if quick else plant.n_validation
+                d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
+                x0_guess, val_guess = d.x0_guess, d.validation.x0
+                f_phys, g = plant.model(plant.start)
+                network = lambda seed, d=d, n=n: _suite_network(d, n, seed)  # noqa: E731
+                seed = 0
+            v = d.validation
+            for start in starts:
+                clock = Clock()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    est = _started_estimator(start, d, g, f_phys, network, seed, x0_guess)
+                if est is None:
+                    continue
+                cpu_start = clock.read()["cpu_s"]
+                # the plant's validation guess is in the true states' coordinates; the other starts
+                # choose their own, and their first state is the guess
+                same_states = start in ("defaults", "true-states")
+                guess = val_guess if same_states else np.asarray(est.x0_mean).reshape(-1)
+                x0 = fitted_first_state(est.f, est.g, v.u, v.y, guess)
+                start_val = rmse(simulate(est.f, est.g, v.u, x0), v.y_true)
+                clock = Clock()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    warm, report = simulation_start(est, d.u, d.y, return_report=True)
+                cpu = clock.read()["cpu_s"]
+                x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, guess)
+                x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, np.asarray(warm.x0_mean).reshape(-1))
+                row = {
+                    "plant": name,
+                    "record": record,
+                    "n_train": n,
+                    "start": start,
+                    "start_validation_rmse": start_val,
+                    "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
+                    "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
+                    "cpu_start_s": cpu_start,
+                    "cpu_s": cpu,
+                    "iterations": report.iterations,
+                }
+                rows.append(row)
+                print(
+                    f"{name:>18} {record:>6} {start:>18} {start_val:10.4g} {row['validation_rmse']:10.4g} "
+                    f"{row['training_rmse']:9.4g} {cpu_start:9.1f} {cpu:9.1f} {report.iterations:>5}",
+                    flush=True,
+                )
+    return rows
+
+
 # ------------------------------------------------------------------------------ main
 def _jsonable(obj):
     if isinstance(obj, dict):
@@ -544,7 +694,10 @@ def _jsonable(obj):
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "study", choices=["pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread"]
+        "study",
+        choices=[
+            "pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread", "first-stage-starts"
+        ],
     )
     parser.add_argument("--seeds", default="1,2,3,4", help="pendulum-records: records' and networks' seeds")
     parser.add_argument("--quick", action="store_true")
@@ -564,6 +717,10 @@ def main(argv=None) -> None:
     parser.add_argument("--net-seeds", default="0,10,20", help="first-stage-spread: network seed offsets")
     parser.add_argument("--weight-decay", default="0,1e-3", help="first-stage-spread: weight decays")
     parser.add_argument("--validation-fraction", type=float, default=0.15, help="first-stage-spread")
+    parser.add_argument("--starts", default=",".join(STARTS), help="first-stage-starts: the network's starts")
+    parser.add_argument(
+        "--record-length", type=int, default=None, help="first-stage-starts: suite plants' training samples"
+    )
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     if args.study == "pendulum":
@@ -591,6 +748,14 @@ def main(argv=None) -> None:
             [float(a) for a in args.weight_decay.split(",")],
             args.quick,
             args.validation_fraction,
+        )
+    elif args.study == "first-stage-starts":
+        out = first_stage_starts(
+            args.plants.split(","),
+            [int(a) for a in args.records.split(",")],
+            args.starts.split(","),
+            args.quick,
+            args.record_length,
         )
     else:
         out = suite(args.plants.split(","), args.quick)
