@@ -459,6 +459,35 @@ def _suite_network(d, n: int, seed: int) -> MLPTransition:
     )
 
 
+def _first_stage_records(plants: list[str], records: list[int], quick: bool, n_train: int | None = None):
+    """The records the first-stage studies train on: for ``pendulum`` record ``r`` of the README's
+    family (3 % outliers) per entry of ``records``, for a suite plant its clean record of seed 0
+    (``n_train`` samples, default the plant's).  Yields ``(name, record, data, x0_guess,
+    validation_guess, physical_f_at_start, g, network)``, ``network(seed)`` building the study's
+    ``MLPTransition`` (the README's recipe; the suite study's, normalised by the state scales)."""
+    from suite.plants import PLANTS
+
+    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
+
+    for name in plants:
+        for record in records if name == "pendulum" else [0]:
+            if name == "pendulum":
+                n = 400 if quick else 2000
+                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
+                f_phys, g = pendulum_model(PENDULUM_START)
+                network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
+                yield name, record, d, np.zeros(2), np.zeros(2), f_phys, g, network
+            else:
+                plant = PLANTS[name]
+                n = plant.quick_train if quick else (n_train or plant.n_train)
+                n_val = plant.quick_validation if quick else plant.n_validation
+                d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
+                f_phys, g = plant.model(plant.start)
+                network = lambda seed, d=d, n=n: _suite_network(d, n, seed)  # noqa: E731
+                # the first-state guesses as the suite study
+                yield name, record, d, d.x0_guess, d.validation.x0, f_phys, g, network
+
+
 def first_stage_spread(
     plants: list[str],
     records: list[int],
@@ -473,64 +502,44 @@ def first_stage_spread(
     keeps its record (seed 0) and initialises the network with ``offset``.  Validation RMSE of the
     free run from a first state fitted to the validation record's first 200 samples, the training
     record's free run (the same rule), the best held-out score, CPU s."""
-    from suite.plants import PLANTS
-
-    from torch_nssm.datasets import make_pendulum, pendulum_model
-
     rows: list[dict[str, Any]] = []
     print(f"{'plant':>18} {'record':>6} {'net':>4} {'decay':>7} {'validation':>10} {'training':>9} "
           f"{'held-out':>8} {'CPU s':>6} {'iter.':>5}", flush=True)
-    for name in plants:
-        for record in records if name == "pendulum" else [0]:
-            if name == "pendulum":
-                n = 400 if quick else 2000
-                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
-                x0_guess = val_guess = np.zeros(2)
-                g = pendulum_model()[1]
-                network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
-                seeds = [record + offset for offset in offsets]
-            else:
-                plant = PLANTS[name]
-                n = plant.quick_train if quick else plant.n_train
-                n_val = plant.quick_validation if quick else plant.n_validation
-                d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
-                x0_guess, val_guess = d.x0_guess, d.validation.x0  # as the suite study
-                g = plant.model(plant.start)[1]
-                network = lambda seed, d=d, n=n: _suite_network(d, n, seed)  # noqa: E731
-                seeds = list(offsets)
-            v = d.validation
-            for seed in seeds:
-                for decay in decays:
-                    est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
-                    options = NeuralFirstStageOptions(
-                        weight_decay=decay, validation_fraction=validation_fraction
-                    )
-                    clock = Clock()
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        warm, report = simulation_start(est, d.u, d.y, options=options, return_report=True)
-                    cpu = clock.read()["cpu_s"]
-                    x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, val_guess)
-                    x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, x0_guess)
-                    row = {
-                        "plant": name,
-                        "record": record,
-                        "network_seed": seed,
-                        "weight_decay": decay,
-                        "validation_fraction": validation_fraction,
-                        "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
-                        "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
-                        "held_out": min(report.validation_losses) if report.validation_losses else math.nan,
-                        "cpu_s": cpu,
-                        "iterations": report.iterations,
-                    }
-                    rows.append(row)
-                    cells = [
-                        f"{name:>18} {record:>6} {seed:>4} {decay:7.0e} {row['validation_rmse']:10.4g}",
-                        f"{row['training_rmse']:9.4g} {row['held_out']:8.4f} {cpu:6.1f}",
-                        f"{report.iterations:>5}",
-                    ]
-                    print(" ".join(cells), flush=True)
+    for name, record, d, x0_guess, val_guess, _, g, network in _first_stage_records(plants, records, quick):
+        seeds = [record + offset for offset in offsets] if name == "pendulum" else list(offsets)
+        v = d.validation
+        for seed in seeds:
+            for decay in decays:
+                est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
+                options = NeuralFirstStageOptions(
+                    weight_decay=decay, validation_fraction=validation_fraction
+                )
+                clock = Clock()
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    warm, report = simulation_start(est, d.u, d.y, options=options, return_report=True)
+                cpu = clock.read()["cpu_s"]
+                x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, val_guess)
+                x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, x0_guess)
+                row = {
+                    "plant": name,
+                    "record": record,
+                    "network_seed": seed,
+                    "weight_decay": decay,
+                    "validation_fraction": validation_fraction,
+                    "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
+                    "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
+                    "held_out": min(report.validation_losses) if report.validation_losses else math.nan,
+                    "cpu_s": cpu,
+                    "iterations": report.iterations,
+                }
+                rows.append(row)
+                cells = [
+                    f"{name:>18} {record:>6} {seed:>4} {decay:7.0e} {row['validation_rmse']:10.4g}",
+                    f"{row['training_rmse']:9.4g} {row['held_out']:8.4f} {cpu:6.1f}",
+                    f"{report.iterations:>5}",
+                ]
+                print(" ".join(cells), flush=True)
     return rows
 
 
@@ -610,71 +619,54 @@ def first_stage_starts(
 
     Validation RMSE of the start's network and of the trained one, the training record's free run,
     CPU s of the start and of the first stage.  ``n_train``: the suite plants' training length."""
-    from suite.plants import PLANTS
-
-    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
-
     rows: list[dict[str, Any]] = []
     print(f"{'plant':>18} {'record':>6} {'start':>18} {'start val.':>10} {'validation':>10} {'training':>9} "
           f"{'CPU start':>9} {'CPU stage':>9} {'iter.':>5}", flush=True)
-    for name in plants:
-        for record in records if name == "pendulum" else [0]:
-            if name == "pendulum":
-                n = 400 if quick else 2000
-                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
-                x0_guess = val_guess = np.zeros(2)
-                f_phys, g = pendulum_model(PENDULUM_START)
-                network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
-                seed = record
-            else:
-                plant = PLANTS[name]
-                n = plant.quick_train if quick else (n_train or plant.n_train)
-                n_val = plant.quick_validation if quick else plant.n_validation
-                d = plant.make(n, outlier_fraction=0.0, random_state=0, n_validation=n_val)
-                x0_guess, val_guess = d.x0_guess, d.validation.x0
-                f_phys, g = plant.model(plant.start)
-                network = lambda seed, d=d, n=n: _suite_network(d, n, seed)  # noqa: E731
-                seed = 0
-            v = d.validation
-            for start in starts:
-                clock = Clock()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    est = _started_estimator(start, d, g, f_phys, network, seed, x0_guess)
-                if est is None:
-                    continue
-                cpu_start = clock.read()["cpu_s"]
-                # the plant's validation guess is in the true states' coordinates; the other starts
-                # choose their own, and their first state is the guess
-                same_states = start in ("defaults", "true-states")
-                guess = val_guess if same_states else np.asarray(est.x0_mean).reshape(-1)
-                x0 = fitted_first_state(est.f, est.g, v.u, v.y, guess)
-                start_val = rmse(simulate(est.f, est.g, v.u, x0), v.y_true)
-                clock = Clock()
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    warm, report = simulation_start(est, d.u, d.y, return_report=True)
-                cpu = clock.read()["cpu_s"]
-                x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, guess)
-                x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, np.asarray(warm.x0_mean).reshape(-1))
-                row = {
-                    "plant": name,
-                    "record": record,
-                    "n_train": n,
-                    "start": start,
-                    "start_validation_rmse": start_val,
-                    "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
-                    "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
-                    "cpu_start_s": cpu_start,
-                    "cpu_s": cpu,
-                    "iterations": report.iterations,
-                }
-                rows.append(row)
-                print(
-                    f"{name:>18} {record:>6} {start:>18} {start_val:10.4g} {row['validation_rmse']:10.4g} "
-                    f"{row['training_rmse']:9.4g} {cpu_start:9.1f} {cpu:9.1f} {report.iterations:>5}",
-                    flush=True,
-                )
+    for name, record, d, x0_guess, val_guess, f_phys, g, network in _first_stage_records(
+        plants, records, quick, n_train
+    ):
+        seed = record if name == "pendulum" else 0
+        n = len(d.y)
+        v = d.validation
+        for start in starts:
+            clock = Clock()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                est = _started_estimator(start, d, g, f_phys, network, seed, x0_guess)
+            if est is None:
+                continue
+            cpu_start = clock.read()["cpu_s"]
+            # the plant's validation guess is in the true states' coordinates; the other starts
+            # choose their own, and their first state is the guess
+            same_states = start in ("defaults", "true-states")
+            guess = val_guess if same_states else np.asarray(est.x0_mean).reshape(-1)
+            x0 = fitted_first_state(est.f, est.g, v.u, v.y, guess)
+            start_val = rmse(simulate(est.f, est.g, v.u, x0), v.y_true)
+            clock = Clock()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                warm, report = simulation_start(est, d.u, d.y, return_report=True)
+            cpu = clock.read()["cpu_s"]
+            x0 = fitted_first_state(warm.f, warm.g, v.u, v.y, guess)
+            x0_train = fitted_first_state(warm.f, warm.g, d.u, d.y, np.asarray(warm.x0_mean).reshape(-1))
+            row = {
+                "plant": name,
+                "record": record,
+                "n_train": n,
+                "start": start,
+                "start_validation_rmse": start_val,
+                "validation_rmse": rmse(simulate(warm.f, warm.g, v.u, x0), v.y_true),
+                "training_rmse": rmse(simulate(warm.f, warm.g, d.u, x0_train), d.y_true),
+                "cpu_start_s": cpu_start,
+                "cpu_s": cpu,
+                "iterations": report.iterations,
+            }
+            rows.append(row)
+            print(
+                f"{name:>18} {record:>6} {start:>18} {start_val:10.4g} {row['validation_rmse']:10.4g} "
+                f"{row['training_rmse']:9.4g} {cpu_start:9.1f} {cpu:9.1f} {report.iterations:>5}",
+                flush=True,
+            )
     return rows
 
 
