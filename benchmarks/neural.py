@@ -441,10 +441,9 @@ def pendulum_records(seeds: list[int], n: int = 2000) -> dict[str, Any]:
     return rows
 
 
-def _suite_network(d, n: int, seed: int) -> MLPTransition:
-    """The suite study's ``MLPTransition`` for record ``d``: normalised by the plant's state scales."""
-    x = np.asarray(d.x)
-    u = np.asarray(d.u).reshape(n, -1)
+def _normalised_network(x: np.ndarray, u: np.ndarray, seed: int) -> MLPTransition:
+    """An ``MLPTransition(hidden=(32,))`` normalised by the spread of the states ``x`` ``(N, nx)``,
+    of their steps and of the inputs ``u`` ``(N, nu)``."""
     dx = np.diff(x, axis=0)
     return MLPTransition(
         x.shape[1],
@@ -457,6 +456,11 @@ def _suite_network(d, n: int, seed: int) -> MLPTransition:
         out_scale=dx.std(0) + 1e-12,
         random_state=seed,
     )
+
+
+def _suite_network(d, n: int, seed: int) -> MLPTransition:
+    """The suite study's ``MLPTransition`` for record ``d``: normalised by the plant's state scales."""
+    return _normalised_network(np.asarray(d.x), np.asarray(d.u).reshape(n, -1), seed)
 
 
 def _first_stage_records(plants: list[str], records: list[int], quick: bool, n_train: int | None = None):
@@ -584,6 +588,8 @@ def _started_estimator(start: str, d, g, f_phys, network, seed: int, x0_guess) -
         return distilled_start(est, d.u, d.y, random_state=0, **kw)
     if start == "true-states":
         states = np.asarray(d.x)
+    elif start != "delay-coordinates":
+        raise ValueError(f"--starts: unknown start {start!r}; choose from {', '.join(STARTS)}")
     else:
         nx = len(np.asarray(x0_guess).reshape(-1))
         probe = torch.randn(5, nx, dtype=torch.float64)
@@ -593,12 +599,7 @@ def _started_estimator(start: str, d, g, f_phys, network, seed: int, x0_guess) -
         if not reads_first:
             return None
         states = _delay_states(d.y, nx)
-    dx = np.diff(states, axis=0)
-    uu = u.reshape(n, -1)
-    net = MLPTransition(
-        states.shape[1], uu.shape[1], hidden=(32,), x_mean=states.mean(0), x_scale=states.std(0) + 1e-12,
-        u_mean=uu.mean(0), u_scale=uu.std(0) + 1e-12, out_scale=dx.std(0) + 1e-12, random_state=seed,
-    )
+    net = _normalised_network(states, u.reshape(n, -1), seed)
     _one_step_fit(net, states, u)
     return RobustNSSMEstimator(net, g, x0_mean=states[0], random_state=0)
 
@@ -742,6 +743,9 @@ def main(argv=None) -> None:
             args.validation_fraction,
         )
     elif args.study == "first-stage-starts":
+        unknown = sorted(set(args.starts.split(",")) - set(STARTS))
+        if unknown:
+            parser.error(f"--starts: unknown {', '.join(unknown)}; choose from {', '.join(STARTS)}")
         out = first_stage_starts(
             args.plants.split(","),
             [int(a) for a in args.records.split(",")],
