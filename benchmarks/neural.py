@@ -34,8 +34,13 @@ wall seconds beside them, because the machines these ran on were shared):
   the training record's free run, the best held-out score and CPU seconds.
 * ``first-stage-starts`` -- the neural first stage from several starts of the network (as built;
   trained one step ahead on the true states, an oracle; ``distilled_start`` with a linear or the
-  physical reference; one step ahead in delay coordinates of the output): what the start is worth,
+  physical reference; one step ahead on the linear reference's smoothed states or in delay
+  coordinates of the output): what the start is worth,
   and whether a start a user can build reaches it (``--record-length`` for longer suite records).
+* ``distilled-start`` -- ``distilled_start`` then ``fit`` with ``first_stage=None`` (EM alone from
+  the distilled network) and with ``"auto"`` (the neural first stage from it, the default since a
+  distilled network keeps the estimator's ``first_stage``), beside the physical model's default
+  fit (``--plants``, ``--records`` for the pendulum family).
 
 Usage::
 
@@ -45,6 +50,7 @@ Usage::
     python benchmarks/neural.py pendulum-records --seeds 1,2,3,4           # about 5 min per seed
     python benchmarks/neural.py first-stage-spread --plants pendulum,bouc_wen --weight-decay 0,1e-3
     python benchmarks/neural.py first-stage-starts --plants oscillator,bouc_wen
+    python benchmarks/neural.py distilled-start --plants oscillator,bouc_wen,pendulum --records 0,1,2
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
@@ -234,7 +240,9 @@ def pendulum(quick: bool = False, old: bool = True) -> dict[str, Any]:
     }
     print("linear reference", rows["linear_reference"], flush=True)
     if old:
-        said = fit_quietly(old_est, d.u, d.y)
+        # the earlier recipe: EM alone from the distilled network (distilled_start now leaves a
+        # distilled network's first stage to the estimator: "auto" would train it first)
+        said = fit_quietly(old_est.set_params(first_stage=None), d.u, d.y)
         rows["earlier_recipe"] = {
             **clock.read(),
             **score(old_est.f_, old_est.g_),
@@ -548,7 +556,9 @@ def first_stage_spread(
 
 
 #: The starts ``first-stage-starts`` compares (see its docstring).
-STARTS = ("defaults", "true-states", "linear-reference", "physical-reference", "delay-coordinates")
+STARTS = (
+    "defaults", "true-states", "linear-reference", "physical-reference", "linear-states", "delay-coordinates"
+)
 
 
 def _one_step_fit(net: MLPTransition, states: np.ndarray, u: np.ndarray, max_iter: int = 3000) -> None:
@@ -588,6 +598,10 @@ def _started_estimator(start: str, d, g, f_phys, network, seed: int, x0_guess) -
         return distilled_start(est, d.u, d.y, random_state=0, **kw)
     if start == "true-states":
         states = np.asarray(d.x)
+    elif start == "linear-states":
+        est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0)
+        _, info = distilled_start(est, d.u, d.y, random_state=0, return_info=True)
+        states = np.asarray(info.reference.smooth(d.u, d.y).mean)
     elif start != "delay-coordinates":
         raise ValueError(f"--starts: unknown start {start!r}; choose from {', '.join(STARTS)}")
     else:
@@ -615,6 +629,8 @@ def first_stage_starts(
       what a start can give, not something a user has);
     * ``linear-reference`` / ``physical-reference``: ``distilled_start`` with its linear reference
       or the plant's physical model at its start parameters as the reference;
+    * ``linear-states``: trained one step ahead on the smoothed states of ``distilled_start``'s
+      linear reference fit;
     * ``delay-coordinates``: trained one step ahead on ``(y_k, ..., y_{k-nx+1})`` of the measured
       output (where ``g`` reads the first state).
 
@@ -671,6 +687,66 @@ def first_stage_starts(
     return rows
 
 
+def distilled_start_fits(plants: list[str], records: list[int], quick: bool) -> list[dict[str, Any]]:
+    """``distilled_start`` (its linear reference), then ``fit``, two ways: ``first_stage=None`` (EM
+    alone from the distilled network, what ``distilled_start`` returned before) and the estimator's
+    ``first_stage="auto"`` (the neural first stage from the distilled network, then EM), beside the
+    physical model's default fit on the same record; the suite plants' clean records of seed 0, the
+    pendulum family's ``records``.  Validation RMSE (ratio to the physical fit), CPU s of the whole
+    fit (the reference's fit included), EM iterations, whether the network is held as a simulation
+    model, outliers and regular samples flagged."""
+    rows: list[dict[str, Any]] = []
+    print(f"{'plant':>18} {'record':>6} {'fit':>16} {'validation':>10} {'ratio':>6} {'CPU s':>7} "
+          f"{'EM it.':>6} {'sim.':>5} {'flagged':>8} {'regular':>7}", flush=True)
+    em_options = dict(n_iter=3, n_particles=50) if quick else {}
+    records_ = _first_stage_records(plants, records, quick)
+    for name, record, d, x0_guess, val_guess, f_phys, g, network in records_:
+        seed = record if name == "pendulum" else 0
+        v = d.validation
+        mask = getattr(d, "outlier_mask", None)
+        mask = None if mask is None else np.asarray(mask)
+        clock = Clock()
+        phys = RobustNSSMEstimator(copy.deepcopy(f_phys), g, x0_mean=x0_guess, random_state=0, **em_options)
+        fit_quietly(phys, d.u, d.y)
+        x0 = fitted_first_state(phys.f_, phys.g_, v.u, v.y, val_guess)
+        cpu_physical = clock.read()["cpu_s"]
+        rmse_physical = rmse(simulate(phys.f_, phys.g_, v.u, x0), v.y_true)
+        for first_stage in ("physical", None, "auto"):
+            if first_stage == "physical":
+                est, cpu = phys, cpu_physical
+            else:
+                clock = Clock()
+                est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0, **em_options)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    est = distilled_start(est, d.u, d.y, random_state=0).set_params(first_stage=first_stage)
+                said = fit_quietly(est, d.u, d.y)
+                cpu = clock.read()["cpu_s"]
+            guess = val_guess if first_stage == "physical" else np.asarray(est.x0_mean).reshape(-1)
+            x0 = fitted_first_state(est.f_, est.g_, v.u, v.y, guess)
+            val = rmse(simulate(est.f_, est.g_, v.u, x0), v.y_true)
+            summary = em_summary(est, d.u, d.y, mask)
+            row = {
+                "plant": name,
+                "record": record,
+                "fit": f"distilled, {first_stage}" if first_stage != "physical" else "physical",
+                "validation_rmse": val,
+                "ratio": val / rmse_physical,
+                "cpu_s": cpu,
+                "simulation_model": bool(getattr(est, "simulation_model_", False)),
+                **summary,
+                "warnings": [] if first_stage == "physical" else said,
+            }
+            rows.append(row)
+            print(
+                f"{name:>18} {record:>6} {row['fit']:>16} {val:10.4g} {row['ratio']:6.2f} {cpu:7.1f} "
+                f"{row['n_iter']:>6} {str(row['simulation_model']):>5} {row.get('flagged', '-'):>8} "
+                f"{row.get('false_alarms', '-'):>7}",
+                flush=True,
+            )
+    return rows
+
+
 # ------------------------------------------------------------------------------ main
 def _jsonable(obj):
     if isinstance(obj, dict):
@@ -689,7 +765,8 @@ def main(argv=None) -> None:
     parser.add_argument(
         "study",
         choices=[
-            "pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread", "first-stage-starts"
+            "pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread", "first-stage-starts",
+            "distilled-start",
         ],
     )
     parser.add_argument("--seeds", default="1,2,3,4", help="pendulum-records: records' and networks' seeds")
@@ -753,6 +830,9 @@ def main(argv=None) -> None:
             args.quick,
             args.record_length,
         )
+    elif args.study == "distilled-start":
+        records = [int(a) for a in args.records.split(",")]
+        out = distilled_start_fits(args.plants.split(","), records, args.quick)
     else:
         out = suite(args.plants.split(","), args.quick)
     if args.out:
