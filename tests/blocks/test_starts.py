@@ -171,7 +171,10 @@ def test_distilled_start_beats_cold_start(data):
         assert isinstance(info, DistilledStartInfo)
         assert (info.f_action, info.g_action) == ("distilled", "fitted")
         assert info.f_error < 0.05  # the MLP imitates the fitted linear model
-        est_warm = warm.fit(data.u, data.y)
+        # a distilled network keeps the estimator's first stage ("auto": trained by simulation
+        # error from this start); here EM alone from the distilled network is what is measured
+        assert warm.first_stage == "auto"
+        est_warm = warm.set_params(first_stage=None).fit(data.u, data.y)
         est_cold = _neural_estimator(8).set_params(first_stage=None).fit(data.u, data.y)  # the identity
         f, g = true_model(data)
         est_true = RobustNSSMEstimator(f, g, x0_mean=[0.0], n_iter=0, random_state=0).fit(data.u, data.y)
@@ -230,6 +233,7 @@ def test_distilled_start_greybox_takes_physical_parameters(data):
         warnings.simplefilter("ignore")
         warm, info = distilled_start(est, data.u, data.y, n_iter=10, return_info=True)
     assert info.f_action == "physical" and info.f_error is None
+    assert warm.first_stage is None  # the grey box's start is done: EM refines it
     a, b = warm.f.physical.a.item(), warm.f.physical.b.item()
     assert a == pytest.approx(info.reference.f_.a.item())
     assert abs(a - 0.9) < 0.15 and abs(abs(b) - 1.0) < 0.2  # the fitted physics, not the guess
@@ -254,6 +258,7 @@ def test_distilled_start_mlp_observation(data):
         warnings.simplefilter("ignore")
         warm, info = distilled_start(est, data.u, data.y, n_iter=3, return_info=True)
     assert (info.f_action, info.g_action) == ("fitted", "distilled")
+    assert warm.first_stage is None  # only a distilled f is trained again by the first stage
     assert isinstance(info.reference.g, LinearObservation)
     assert info.g_error < 0.05
     assert warm.g.y_mean.item() == pytest.approx(np.median(data.y), abs=1e-2)  # torch: lower median

@@ -350,7 +350,9 @@ def distilled_start(
     RobustNSSMEstimator
         ``sklearn.base.clone(estimator)`` with ``f``, ``g``, ``x0_mean``, ``x0_cov``, ``Rw_init``,
         ``Rv_init`` and the noise family's other initial values (when the reference fitted the
-        estimator's family) from the reference, ``first_stage=None`` for a network; unfitted.
+        estimator's family) from the reference; unfitted.  A network distilled from the
+        reference keeps the estimator's ``first_stage`` (``"auto"``: ``fit`` trains it by
+        simulation error from this start); a grey box gets ``first_stage=None``.
     DistilledStartInfo
         Only with ``return_info=True``.
 
@@ -391,7 +393,8 @@ def distilled_start(
     f_new, f_error = _transition(f, f_action, reference, x_now, u_now, x_next, X, U, distill_iter)
     g_new, g_error = _observation(g, g_action, reference, X, U, ys, distill_iter)
 
-    started = _started(estimator, reference, f_new, g_new)
+    retrain = f_action == "distilled" and not isinstance(f, GreyBoxTransition)
+    started = _started(estimator, reference, f_new, g_new, retrain)
     if not return_info:
         return started
     info = DistilledStartInfo(
@@ -420,8 +423,13 @@ def _reference_estimator(estimator, ref_f, ref_g, noise, n_iter: int, n_particle
     )
 
 
-def _started(estimator, reference, f_new, g_new):
-    """``estimator`` set to start from the new modules and the reference's fitted noise and prior."""
+def _started(estimator, reference, f_new, g_new, retrain: bool):
+    """``estimator`` set to start from the new modules and the reference's fitted noise and prior.
+
+    ``retrain``: ``f`` is a network distilled from the reference, and the estimator's
+    ``first_stage`` stays (``"auto"`` trains it by simulation error from this start); otherwise a
+    model holding a network gets ``first_stage=None`` (a grey box: its physical part took the
+    fitted parameters, its correction starts at zero, and EM refines it)."""
     params: dict[str, Any] = dict(
         f=f_new,
         g=g_new,
@@ -433,8 +441,13 @@ def _started(estimator, reference, f_new, g_new):
     fitted = reference._fitted_noise()
     if fitted.name == estimator._noise_spec().name:  # the reference fitted the estimator's family
         params.update(restart_parameters(estimator.noise, fitted))
-    if holds_network(SimpleNamespace(f=f_new, g=g_new)):
-        params["first_stage"] = None  # this is the network's start: no neural first stage after it
+    # A network distilled from a linear reference imitates a model that does not simulate (the
+    # suite's oscillator: 1.04 mm); EM from there stays near it (0.24 mm after 100 iterations,
+    # Bouc-Wen 7.4 times the physical model), where the neural first stage from the same start
+    # reaches 0.029 mm and 1.8 times in a third to a half of the CPU, and the pendulum alike
+    # (benchmarks/README.md, "What the start of the network is worth").
+    if holds_network(SimpleNamespace(f=f_new, g=g_new)) and not retrain:
+        params["first_stage"] = None  # a grey box's start is done: no neural first stage after it
     return clone(estimator).set_params(**params)
 
 
