@@ -444,10 +444,10 @@ def _started(estimator, reference, f_new, g_new, retrain: bool):
     # A network distilled from a linear reference imitates a model that does not simulate (the
     # suite's oscillator: 1.04 mm); EM from there stays near it (0.24 mm after 100 iterations,
     # Bouc-Wen 7.4 times the physical model), where the neural first stage from the same start
-    # reaches 0.029 mm and 1.8 times in a third to a half of the CPU, and the pendulum alike
-    # (benchmarks/README.md, "What the start of the network is worth").
+    # reaches 0.029 mm and 1.8 times in a third to a half of the CPU; on five pendulum records
+    # even on three, worse on two (benchmarks/README.md, "`distilled_start`, then `fit`").
     if holds_network(SimpleNamespace(f=f_new, g=g_new)) and not retrain:
-        params["first_stage"] = None  # a grey box's start is done: no neural first stage after it
+        params["first_stage"] = None  # a grey box's (an MLPObservation's) start is done: EM refines it
     return clone(estimator).set_params(**params)
 
 
