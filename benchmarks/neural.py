@@ -429,7 +429,9 @@ def pendulum_records(seeds: list[int], n: int = 2000) -> dict[str, Any]:
         p = {**clock.read(), "rmse": rmse(simulate(phys.f_, phys.g_, v.u, x0), v.y_true)}
         _, g = pendulum_model()
         clock = Clock()
-        net = RobustNSSMEstimator(MLPTransition(2, 1, hidden=(32,), random_state=seed), g, x0_mean=[0.0, 0.0])
+        net = RobustNSSMEstimator(
+            MLPTransition(2, 1, hidden=(32,), random_state=seed), g, x0_mean=[0.0, 0.0], random_state=0
+        )
         said = fit_quietly(net, d.u, d.y)
         x0 = fitted_first_state(net.f_, net.g_, v.u, v.y, np.zeros(2))
         r = {
