@@ -41,6 +41,9 @@ wall seconds beside them, because the machines these ran on were shared):
   the distilled network) and with ``"auto"`` (the neural first stage from it, the default since a
   distilled network keeps the estimator's ``first_stage``), beside the physical model's default
   fit (``--plants``, ``--records`` for the pendulum family).
+* ``grey-box`` -- a ``GreyBoxTransition`` of the pendulum's RK4 model (plus a 16-unit correction)
+  fitted with the defaults and after ``distilled_start``, beside the physical model's default fit
+  (``--records``).
 
 Usage::
 
@@ -51,6 +54,7 @@ Usage::
     python benchmarks/neural.py first-stage-spread --plants pendulum,bouc_wen --weight-decay 0,1e-3
     python benchmarks/neural.py first-stage-starts --plants oscillator,bouc_wen
     python benchmarks/neural.py distilled-start --plants oscillator,bouc_wen,pendulum --records 0,1,2
+    python benchmarks/neural.py grey-box --records 0                        # about 20 min per record
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
@@ -749,6 +753,58 @@ def distilled_start_fits(plants: list[str], records: list[int], quick: bool) -> 
     return rows
 
 
+def grey_box(records: list[int], quick: bool, hidden: int = 16) -> list[dict[str, Any]]:
+    """The pendulum family's ``records`` (3 % outliers): the physical RK4 model's default fit, and a
+    ``GreyBoxTransition`` of it (the same model at its start parameters plus an ``hidden``-unit
+    correction that starts at zero) fitted with the defaults (the neural first stage inside
+    ``fit``) and after ``distilled_start`` (the physical part at the reference's fit, EM refines
+    both).  Validation RMSE (ratio to the physical fit), CPU s, EM iterations, the first stage's
+    iterations, outliers and regular samples flagged."""
+    from torch_nssm.neural import GreyBoxTransition
+
+    rows: list[dict[str, Any]] = []
+    print(f"{'record':>6} {'fit':>18} {'validation':>10} {'ratio':>6} {'CPU s':>7} {'EM it.':>6} "
+          f"{'stage it.':>9} {'flagged':>8} {'regular':>7}", flush=True)
+    em_options = dict(n_iter=3, n_particles=50) if quick else {}
+    for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(["pendulum"], records, quick):
+        v, mask = d.validation, np.asarray(d.outlier_mask)
+        rmse_physical = None
+        for fit in ("physical", "grey box, defaults", "grey box, distilled"):
+            clock = Clock()
+            f = copy.deepcopy(f_phys)
+            if fit != "physical":
+                f = GreyBoxTransition(f, 2, 1, hidden=(hidden,), random_state=0)
+            est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, random_state=0, **em_options)
+            if fit == "grey box, distilled":
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    est = distilled_start(est, d.u, d.y, random_state=0)
+            said = fit_quietly(est, d.u, d.y)
+            cpu = clock.read()["cpu_s"]
+            guess = val_guess if fit == "physical" else np.asarray(est.x0_mean).reshape(-1)
+            x0 = fitted_first_state(est.f_, est.g_, v.u, v.y, guess)
+            val = rmse(simulate(est.f_, est.g_, v.u, x0), v.y_true)
+            rmse_physical = val if rmse_physical is None else rmse_physical
+            stage_it = getattr(est.first_stage_, "iterations", None)
+            row = {
+                "record": record,
+                "fit": fit,
+                "validation_rmse": val,
+                "ratio": val / rmse_physical,
+                "cpu_s": cpu,
+                "first_stage_iterations": stage_it,
+                **em_summary(est, d.u, d.y, mask),
+                "warnings": said,
+            }
+            rows.append(row)
+            print(
+                f"{record:>6} {fit:>18} {val:10.4g} {row['ratio']:6.2f} {cpu:7.1f} {row['n_iter']:>6} "
+                f"{str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}",
+                flush=True,
+            )
+    return rows
+
+
 # ------------------------------------------------------------------------------ main
 def _jsonable(obj):
     if isinstance(obj, dict):
@@ -768,7 +824,7 @@ def main(argv=None) -> None:
         "study",
         choices=[
             "pendulum", "pendulum-records", "silverbox", "suite", "first-stage-spread", "first-stage-starts",
-            "distilled-start",
+            "distilled-start", "grey-box",
         ],
     )
     parser.add_argument("--seeds", default="1,2,3,4", help="pendulum-records: records' and networks' seeds")
@@ -832,6 +888,8 @@ def main(argv=None) -> None:
             args.quick,
             args.record_length,
         )
+    elif args.study == "grey-box":
+        out = grey_box([int(a) for a in args.records.split(",")], args.quick)
     elif args.study == "distilled-start":
         records = [int(a) for a in args.records.split(",")]
         out = distilled_start_fits(args.plants.split(","), records, args.quick)
