@@ -693,61 +693,66 @@ def first_stage_starts(
     return rows
 
 
+def _scored_fit(est, d, mask: np.ndarray | None, guess=None, distil: bool = False, **params):
+    """Fit ``est`` on record ``d`` (after ``distilled_start`` if ``distil``, its CPU included; then
+    ``set_params(**params)``) and score it: validation RMSE from a first state fitted to the
+    validation record (from ``guess``, default the estimator's ``x0_mean``), CPU s, the fit's
+    warnings, its ``em_summary``.  Returns ``(fitted estimator, row)``."""
+    clock = Clock()
+    if distil:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # the reference fit's; the fit's own are recorded
+            est = distilled_start(est, d.u, d.y, random_state=0)
+    est.set_params(**params)
+    said = fit_quietly(est, d.u, d.y)
+    cpu = clock.read()["cpu_s"]
+    v = d.validation
+    guess = np.asarray(est.x0_mean).reshape(-1) if guess is None else guess
+    x0 = fitted_first_state(est.f_, est.g_, v.u, v.y, guess)
+    row = {
+        "validation_rmse": rmse(simulate(est.f_, est.g_, v.u, x0), v.y_true),
+        "cpu_s": cpu,
+        "simulation_model": bool(getattr(est, "simulation_model_", False)),
+        **em_summary(est, d.u, d.y, mask),
+        "warnings": said,
+    }
+    return est, row
+
+
 def distilled_start_fits(plants: list[str], records: list[int], quick: bool) -> list[dict[str, Any]]:
     """``distilled_start`` (its linear reference), then ``fit``, two ways: ``first_stage=None`` (EM
-    alone from the distilled network, what ``distilled_start`` returned before) and the estimator's
-    ``first_stage="auto"`` (the neural first stage from the distilled network, then EM), beside the
-    physical model's default fit on the same record; the suite plants' clean records of seed 0, the
-    pendulum family's ``records``.  Validation RMSE (ratio to the physical fit), CPU s of the whole
-    fit (the reference's fit included), EM iterations, whether the network is held as a simulation
-    model, outliers and regular samples flagged."""
+    alone from the distilled network) and the estimator's ``first_stage="auto"`` (the neural first
+    stage from the distilled network, then EM: what the result of ``distilled_start`` does),
+    beside the physical model's default fit on the same record; the suite plants' clean records of
+    seed 0, the pendulum family's ``records``.  Validation RMSE (ratio to the physical fit), CPU s
+    of the whole fit (the reference's fit included), EM iterations, whether the network is held
+    as a simulation model, outliers and regular samples flagged."""
     rows: list[dict[str, Any]] = []
     print(f"{'plant':>18} {'record':>6} {'fit':>16} {'validation':>10} {'ratio':>6} {'CPU s':>7} "
           f"{'EM it.':>6} {'sim.':>5} {'flagged':>8} {'regular':>7}", flush=True)
-    em_options = dict(n_iter=3, n_particles=50) if quick else {}
-    records_ = _first_stage_records(plants, records, quick)
-    for name, record, d, x0_guess, val_guess, f_phys, g, network in records_:
+    em_options = dict(n_iter=3, n_particles=50, random_state=0) if quick else dict(random_state=0)
+    for name, record, d, x0_guess, val_guess, f_phys, g, network in _first_stage_records(
+        plants, records, quick
+    ):
         seed = record if name == "pendulum" else 0
-        v = d.validation
         mask = getattr(d, "outlier_mask", None)
         mask = None if mask is None else np.asarray(mask)
-        clock = Clock()
-        phys = RobustNSSMEstimator(copy.deepcopy(f_phys), g, x0_mean=x0_guess, random_state=0, **em_options)
-        fit_quietly(phys, d.u, d.y)
-        x0 = fitted_first_state(phys.f_, phys.g_, v.u, v.y, val_guess)
-        cpu_physical = clock.read()["cpu_s"]
-        rmse_physical = rmse(simulate(phys.f_, phys.g_, v.u, x0), v.y_true)
-        for first_stage in ("physical", None, "auto"):
-            if first_stage == "physical":
-                est, cpu = phys, cpu_physical
+        phys = RobustNSSMEstimator(copy.deepcopy(f_phys), g, x0_mean=x0_guess, **em_options)
+        _, physical = _scored_fit(phys, d, mask, val_guess)
+        for fit in ("physical", None, "auto"):
+            if fit == "physical":
+                row = {"fit": "physical", **physical}
             else:
-                clock = Clock()
-                est = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, random_state=0, **em_options)
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    est = distilled_start(est, d.u, d.y, random_state=0).set_params(first_stage=first_stage)
-                said = fit_quietly(est, d.u, d.y)
-                cpu = clock.read()["cpu_s"]
-            guess = val_guess if first_stage == "physical" else np.asarray(est.x0_mean).reshape(-1)
-            x0 = fitted_first_state(est.f_, est.g_, v.u, v.y, guess)
-            val = rmse(simulate(est.f_, est.g_, v.u, x0), v.y_true)
-            summary = em_summary(est, d.u, d.y, mask)
-            row = {
-                "plant": name,
-                "record": record,
-                "fit": f"distilled, {first_stage}" if first_stage != "physical" else "physical",
-                "validation_rmse": val,
-                "ratio": val / rmse_physical,
-                "cpu_s": cpu,
-                "simulation_model": bool(getattr(est, "simulation_model_", False)),
-                **summary,
-                "warnings": [] if first_stage == "physical" else said,
-            }
+                net = RobustNSSMEstimator(network(seed), g, x0_mean=x0_guess, **em_options)
+                _, scored = _scored_fit(net, d, mask, distil=True, first_stage=fit)
+                row = {"fit": f"distilled, {fit}", **scored}
+            val = row["validation_rmse"]
+            row = {"plant": name, "record": record, "ratio": val / physical["validation_rmse"], **row}
             rows.append(row)
             print(
-                f"{name:>18} {record:>6} {row['fit']:>16} {val:10.4g} {row['ratio']:6.2f} {cpu:7.1f} "
-                f"{row['n_iter']:>6} {str(row['simulation_model']):>5} {row.get('flagged', '-'):>8} "
-                f"{row.get('false_alarms', '-'):>7}",
+                f"{name:>18} {record:>6} {row['fit']:>16} {val:10.4g} {row['ratio']:6.2f} "
+                f"{row['cpu_s']:7.1f} {row['n_iter']:>6} {str(row['simulation_model']):>5} "
+                f"{row.get('flagged', '-'):>8} {row.get('false_alarms', '-'):>7}",
                 flush=True,
             )
     return rows
@@ -765,41 +770,26 @@ def grey_box(records: list[int], quick: bool, hidden: int = 16) -> list[dict[str
     rows: list[dict[str, Any]] = []
     print(f"{'record':>6} {'fit':>18} {'validation':>10} {'ratio':>6} {'CPU s':>7} {'EM it.':>6} "
           f"{'stage it.':>9} {'flagged':>8} {'regular':>7}", flush=True)
-    em_options = dict(n_iter=3, n_particles=50) if quick else {}
+    em_options = dict(n_iter=3, n_particles=50, random_state=0) if quick else dict(random_state=0)
     for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(["pendulum"], records, quick):
-        v, mask = d.validation, np.asarray(d.outlier_mask)
+        mask = np.asarray(d.outlier_mask)
         rmse_physical = None
         for fit in ("physical", "grey box, defaults", "grey box, distilled"):
-            clock = Clock()
             f = copy.deepcopy(f_phys)
             if fit != "physical":
                 f = GreyBoxTransition(f, 2, 1, hidden=(hidden,), random_state=0)
-            est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, random_state=0, **em_options)
-            if fit == "grey box, distilled":
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")
-                    est = distilled_start(est, d.u, d.y, random_state=0)
-            said = fit_quietly(est, d.u, d.y)
-            cpu = clock.read()["cpu_s"]
-            guess = val_guess if fit == "physical" else np.asarray(est.x0_mean).reshape(-1)
-            x0 = fitted_first_state(est.f_, est.g_, v.u, v.y, guess)
-            val = rmse(simulate(est.f_, est.g_, v.u, x0), v.y_true)
+            est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, **em_options)
+            guess = val_guess if fit == "physical" else None
+            est, row = _scored_fit(est, d, mask, guess, distil=fit == "grey box, distilled")
+            val = row["validation_rmse"]
             rmse_physical = val if rmse_physical is None else rmse_physical
             stage_it = getattr(est.first_stage_, "iterations", None)
-            row = {
-                "record": record,
-                "fit": fit,
-                "validation_rmse": val,
-                "ratio": val / rmse_physical,
-                "cpu_s": cpu,
-                "first_stage_iterations": stage_it,
-                **em_summary(est, d.u, d.y, mask),
-                "warnings": said,
-            }
+            row = {"record": record, "fit": fit, "ratio": val / rmse_physical, **row}
+            row["first_stage_iterations"] = stage_it
             rows.append(row)
             print(
-                f"{record:>6} {fit:>18} {val:10.4g} {row['ratio']:6.2f} {cpu:7.1f} {row['n_iter']:>6} "
-                f"{str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}",
+                f"{record:>6} {fit:>18} {val:10.4g} {row['ratio']:6.2f} {row['cpu_s']:7.1f} "
+                f"{row['n_iter']:>6} {str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}",
                 flush=True,
             )
     return rows
