@@ -244,7 +244,7 @@ def pendulum(quick: bool = False, old: bool = True) -> dict[str, Any]:
     }
     print("linear reference", rows["linear_reference"], flush=True)
     if old:
-        # the earlier recipe: EM alone from the distilled network (distilled_start now leaves a
+        # the earlier recipe: EM alone from the distilled network (distilled_start leaves a
         # distilled network's first stage to the estimator: "auto" would train it first)
         said = fit_quietly(old_est.set_params(first_stage=None), d.u, d.y)
         rows["earlier_recipe"] = {
