@@ -163,7 +163,9 @@ class RobustNSSMEstimator(ModelState, ModuleParams, RegressorMixin, BaseEstimato
         When ``f`` or ``g`` holds a network layer, the neural first stage instead: the networks
         trained by robust simulation error over windows of doubling length, with an early stop on
         the held-out end of each record (:mod:`torch_nssm.estimation.neural_first_stage`; its
-        options and report: :func:`~torch_nssm.simulation_start`).
+        options and report: :func:`~torch_nssm.simulation_start`); a grey box's physical
+        parameters (free parameters of ``f`` outside its network layers) get the first stage
+        above first, the network held.
         ``"auto"``: the same when ``n_iter > 0`` and ``f`` or ``g`` has free parameters, and EM
         starts there only if that free run explains at least half of ``y`` (robust R²; below it the
         process noise dominates).  ``None``: EM starts from the given values.  docs/design.md,

@@ -180,3 +180,32 @@ def replace_modules(model, f):
     from dataclasses import replace
 
     return replace(model, f=f)
+
+
+@pytest.mark.filterwarnings("ignore:only 300 observed samples")
+def test_a_grey_box_fits_its_physical_part_first_with_the_network_held():
+    """``physical_part_first``: a GreyBoxTransition's physical parameters (30-50 % off) are fitted by
+    the physical first stage while the correction's layers are held (unchanged, their
+    ``requires_grad`` restored); a network without physical parameters gets ``None``."""
+    from torch_nssm.datasets import PENDULUM_START, PENDULUM_TRUE, make_pendulum, pendulum_model
+    from torch_nssm.estimation.start import physical_part_first
+    from torch_nssm.neural import GreyBoxTransition, MLPTransition
+
+    d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
+    f_phys, g = pendulum_model(PENDULUM_START)
+    grey = GreyBoxTransition(f_phys, 2, 1, hidden=(8,), random_state=0)
+    before = [p.detach().clone() for p in grey.net.parameters()]
+    est = RobustNSSMEstimator(grey, g, x0_mean=[0.0, 0.0])
+    device = est._check_params()
+    data, _ = est._batch(d.u, d.y, device, fitted=False)
+    model = est._initial_model(data, device)
+    report = physical_part_first(model, data)
+    assert report is not None and report.accepted
+    for k, v in PENDULUM_TRUE.items():
+        assert getattr(model.f.physical, k).item() == pytest.approx(v, rel=0.02), k
+    for p, p0 in zip(model.f.net.parameters(), before):
+        assert p.requires_grad and torch.equal(p, p0)
+    net_model = RobustNSSMEstimator(MLPTransition(2, 1, hidden=(8,)), g, x0_mean=[0.0, 0.0])._initial_model(
+        data, device
+    )
+    assert physical_part_first(net_model, data) is None

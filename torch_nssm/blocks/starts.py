@@ -46,10 +46,9 @@ from ..estimation.neural_first_stage import (
     NeuralFirstStageReport,
     default_options,
     holds_network,
-    neural_first_stage,
     start_noise_levels,
 )
-from ..estimation.start import stage_seed
+from ..estimation.start import network_first_stage, stage_seed
 from ..estimator import RobustNSSMEstimator
 from .continuous import ContinuousTimeTransition
 from .linear import LinearObservation, LinearTransition
@@ -567,7 +566,8 @@ def simulation_start(
     Runs the neural first stage (:func:`~torch_nssm.estimation.neural_first_stage.neural_first_stage`:
     windows of the record simulated noise-free, a Cauchy loss, LBFGS, an early stop on the held-out
     end of each record) on the estimator's modules and returns an unfitted clone that starts EM
-    there.  Call ``.fit(u, y)`` on the result.
+    there; a grey box's physical parameters are fitted first, the network held
+    (:func:`~torch_nssm.estimation.start.physical_part_first`).  Call ``.fit(u, y)`` on the result.
 
     Parameters
     ----------
@@ -596,7 +596,8 @@ def simulation_start(
         noise small: ``fit_Rw=False`` and ``Rw_init`` 1e-6 times the variance of each simulated
         state (:func:`~torch_nssm.estimation.neural_first_stage.start_noise_levels`) unless given;
         ``fit_Rw=True`` lets EM estimate it.  If the training did not improve the free run
-        (``report.accepted`` is False) the modules are the given ones and a warning says so.
+        (``report.accepted`` is False) the modules are the given ones (a grey box's: at its
+        physical part's fit where that improved it) and a warning says so.
     NeuralFirstStageReport
         Only with ``return_report=True``.
 
@@ -625,22 +626,23 @@ def simulation_start(
     data, _ = estimator._batch(u, y, device, fitted=False)
     model = estimator._initial_model(data, device)
     generator = torch.Generator().manual_seed(stage_seed(estimator.random_state))
-    report = neural_first_stage(model, data, options, generator=generator)
+    report, first_states = network_first_stage(model, data, options, generator)
     params: dict[str, Any] = dict(f=model.f, g=model.g, first_stage=None)
-    if report.accepted:
-        Rw, Rv = start_noise_levels(model, data, report.first_states)
-        params["x0_mean"] = report.first_states.mean(0).cpu().numpy()
+    if first_states is not None:
+        Rw, Rv = start_noise_levels(model, data, first_states)
+        params["x0_mean"] = first_states.mean(0).cpu().numpy()
         if estimator.Rv_init is None:
             params["Rv_init"] = Rv.cpu().numpy()
         if estimator.fit_Rw == "auto":  # a simulation model: EM holds its process noise small
             params["fit_Rw"] = False
             if estimator.Rw_init is None:
                 params["Rw_init"] = Rw.cpu().numpy()
-    else:
+    if not report.accepted:
+        where = "the given modules" if first_states is None else "the physical part's fit (the network held)"
         warnings.warn(
             f"the simulation-error training did not improve the free run of the record (trimmed RMS of "
             f"its errors {report.free_run_after:.4g}, the start's {report.free_run_before:.4g}): EM starts "
-            "from the given modules",
+            f"from {where}",
             RuntimeWarning,
             stacklevel=2,
         )

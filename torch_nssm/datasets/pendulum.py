@@ -4,7 +4,8 @@
 is one classical Runge-Kutta (RK4) step per sample, written by hand in :class:`PendulumTransition`,
 and the generator (:func:`make_pendulum`) simulates exactly that discrete model, with a small
 random torque as process noise.  Three physical parameters, all free; the model is nonlinear in
-them (RK4 of ``sin``).
+them (RK4 of ``sin``).  ``make_pendulum(friction=...)`` adds a dry friction in the pivot that
+:func:`pendulum_model` does not have: a gap in the physics for a grey box's correction to fill.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ __all__ = [
     "PENDULUM_START",
     "PENDULUM_RW",
     "PENDULUM_RV",
+    "PENDULUM_FRICTION_WIDTH",
     "PendulumTransition",
     "PendulumObservation",
     "make_pendulum",
@@ -58,6 +60,9 @@ PENDULUM_RV: float = 1e-4
 #: Torque input: Gaussian noise band-limited to this band (Hz; the resonance is at 0.70 Hz), s.d.
 PENDULUM_INPUT_BAND: tuple[float, float] = (0.0, 1.0)
 PENDULUM_INPUT_STD: float = 0.7
+#: Rate (rad/s) over which the pivot's dry friction ``friction * tanh(theta' / width)`` changes
+#: sign (a smooth Coulomb friction; ``make_pendulum(friction=...)``).
+PENDULUM_FRICTION_WIDTH: float = 0.1
 #: First state of the validation record: released from 0.5 rad (the training record starts at rest).
 PENDULUM_VALIDATION_X0: tuple[float, float] = (0.5, 0.0)
 
@@ -119,6 +124,8 @@ def pendulum_model(
 
 def _rates(x: np.ndarray, u: float, p: dict[str, float]) -> np.ndarray:
     acc = -p["g_over_l"] * np.sin(x[0]) - p["damping"] * x[1] + p["gain"] * u
+    if p.get("friction"):  # the pivot's dry friction, absent from PendulumTransition
+        acc = acc - p["friction"] * np.tanh(x[1] / PENDULUM_FRICTION_WIDTH)
     return np.array([x[1], acc])
 
 
@@ -145,6 +152,7 @@ def make_pendulum(
     Rv: Any = PENDULUM_RV,
     input_std: float = PENDULUM_INPUT_STD,
     params: dict[str, float] | None = None,
+    friction: float = 0.0,
 ) -> PlantData:
     """A damped pendulum driven by a band-limited random torque, angle measured.
 
@@ -172,6 +180,11 @@ def make_pendulum(
         Standard deviation of the torque, N m.
     params : dict, optional
         True parameters (default :data:`PENDULUM_TRUE`; missing keys keep their default).
+    friction : float, default=0.0
+        Dry friction of the pivot, rad/s^2: ``- friction * tanh(theta' / PENDULUM_FRICTION_WIDTH)``
+        in the angular acceleration.  :func:`pendulum_model` does not have it (with ``friction=1``
+        the true parameters without it simulate the validation record to about 0.2 rad): a record
+        for grey-box models (:class:`~torch_nssm.neural.GreyBoxTransition`).
 
     Returns
     -------
@@ -185,6 +198,11 @@ def make_pendulum(
     std = float(input_std)
     if not (math.isfinite(std) and std >= 0):
         raise ValueError(f"input_std must be a finite non-negative number, got {input_std!r}")
+    dry = float(friction)
+    if not (math.isfinite(dry) and dry >= 0):
+        raise ValueError(f"friction must be a finite non-negative number, got {friction!r}")
+    if dry:
+        p = {**p, "friction": dry}
     rng_train, rng_val, rng_out = spawn_streams(random_state)
     settings = {**p, **noise_params(Rw_v, Rv_v), "input_std": std, "input_band": list(PENDULUM_INPUT_BAND)}
     u, x, y_true, y_clean = _simulate(rng_val, n_val, PENDULUM_VALIDATION_X0, p, Rw_v, Rv_v, std)

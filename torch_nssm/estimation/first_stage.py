@@ -142,9 +142,11 @@ class FirstStageReport:
     explained: float = math.nan
 
 
-#: Layers that mark a network: ``first_stage="auto"`` leaves models holding them to
-#: :func:`torch_nssm.distilled_start` (a simulation-error fit of an untrained network from a
-#: random start is a training problem of its own, not a quick first stage).
+#: Layers that mark a network: a model holding them gets the neural first stage
+#: (:mod:`torch_nssm.estimation.neural_first_stage`) instead of this one (a simulation-error fit of
+#: an untrained network is a training problem of its own, not a Levenberg-Marquardt fit of a few
+#: parameters); a grey box's physical parameters get this one first, its network held
+#: (:func:`torch_nssm.estimation.start.physical_part_first`).
 NETWORK_LAYERS: tuple[type, ...] = (
     torch.nn.Linear,
     torch.nn.Bilinear,

@@ -53,7 +53,7 @@ from torch import Tensor, nn
 
 from .._stats import MAD_TO_STD
 from ..core.model import SequenceBatch, StateSpaceModel
-from .first_stage import NETWORK_LAYERS
+from .first_stage import NETWORK_LAYERS, FirstStageReport
 
 __all__ = [
     "NeuralFirstStageOptions",
@@ -276,6 +276,9 @@ class NeuralFirstStageReport:
         simulation check after a fit, :func:`torch_nssm.estimation.start.check_simulation`).
     interrupted : bool
         Always False: the stage is not interrupted by Ctrl-C (the fit is).
+    physical_stage : FirstStageReport or None
+        A grey box's physical first stage before this one, the network held (set by the start
+        policy, :func:`torch_nssm.estimation.start.physical_part_first`); ``None`` otherwise.
     """
 
     accepted: bool
@@ -300,6 +303,7 @@ class NeuralFirstStageReport:
     free_run_scale_before_em: float = math.nan
     free_run_scale_after_em: float = math.nan
     interrupted: bool = False
+    physical_stage: FirstStageReport | None = field(default=None, repr=False)
 
 
 class StateEncoder(nn.Module):
