@@ -43,7 +43,8 @@ wall seconds beside them, because the machines these ran on were shared):
   fit (``--plants``, ``--records`` for the pendulum family).
 * ``grey-box`` -- a ``GreyBoxTransition`` of the pendulum's RK4 model (plus a 16-unit correction)
   fitted with the defaults and after ``distilled_start``, beside the physical model's default fit
-  (``--records``).
+  and the true model's free run (``--records``; ``--friction``: a dry friction in the pivot that
+  the physical model lacks).
 
 Usage::
 
@@ -54,7 +55,7 @@ Usage::
     python benchmarks/neural.py first-stage-spread --plants pendulum,bouc_wen --weight-decay 0,1e-3
     python benchmarks/neural.py first-stage-starts --plants oscillator,bouc_wen
     python benchmarks/neural.py distilled-start --plants oscillator,bouc_wen,pendulum --records 0,1,2
-    python benchmarks/neural.py grey-box --records 0                        # about 20 min per record
+    python benchmarks/neural.py grey-box --records 0 --friction 1             # about 10 min per record
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
@@ -477,12 +478,16 @@ def _suite_network(d, n: int, seed: int) -> MLPTransition:
     return _normalised_network(np.asarray(d.x), np.asarray(d.u).reshape(n, -1), seed)
 
 
-def _first_stage_records(plants: list[str], records: list[int], quick: bool, n_train: int | None = None):
+def _first_stage_records(
+    plants: list[str], records: list[int], quick: bool, n_train: int | None = None, friction: float = 0.0
+):
     """The records the first-stage studies train on: for ``pendulum`` record ``r`` of the README's
     family (3 % outliers) per entry of ``records``, for a suite plant its clean record of seed 0
     (``n_train`` samples, default the plant's).  Yields ``(name, record, data, x0_guess,
     validation_guess, physical_f_at_start, g, network)``, ``network(seed)`` building the study's
-    ``MLPTransition`` (the README's recipe; the suite study's, normalised by the state scales)."""
+    ``MLPTransition`` (the README's recipe; the suite study's, normalised by the state scales);
+    ``friction``: the pendulum's dry friction (``make_pendulum(friction=...)``, absent from its
+    physical model)."""
     from suite.plants import PLANTS
 
     from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
@@ -491,7 +496,9 @@ def _first_stage_records(plants: list[str], records: list[int], quick: bool, n_t
         for record in records if name == "pendulum" else [0]:
             if name == "pendulum":
                 n = 400 if quick else 2000
-                d = make_pendulum(n, outlier_fraction=0.03, random_state=record, n_validation=n)
+                d = make_pendulum(
+                    n, outlier_fraction=0.03, random_state=record, n_validation=n, friction=friction
+                )
                 f_phys, g = pendulum_model(PENDULUM_START)
                 network = lambda seed: MLPTransition(2, 1, hidden=(32,), random_state=seed)  # noqa: E731
                 yield name, record, d, np.zeros(2), np.zeros(2), f_phys, g, network
@@ -758,21 +765,45 @@ def distilled_start_fits(plants: list[str], records: list[int], quick: bool) -> 
     return rows
 
 
-def grey_box(records: list[int], quick: bool, hidden: int = 16) -> list[dict[str, Any]]:
-    """The pendulum family's ``records`` (3 % outliers): the physical RK4 model's default fit, and a
-    ``GreyBoxTransition`` of it (the same model at its start parameters plus an ``hidden``-unit
-    correction that starts at zero) fitted with the defaults (the neural first stage inside
-    ``fit``) and after ``distilled_start`` (the physical part at the reference's fit, EM refines
-    both).  Validation RMSE (ratio to the physical fit), CPU s, EM iterations, the first stage's
-    iterations, outliers and regular samples flagged."""
+def _pendulum_with_friction(friction: float) -> torch.nn.Module:
+    """The pendulum's RK4 transition at the truth with the pivot's dry friction of
+    ``make_pendulum(friction=...)``: the true model of a record with friction."""
+    from torch_nssm.datasets.pendulum import PENDULUM_FRICTION_WIDTH, PendulumTransition
+
+    class WithFriction(PendulumTransition):
+        def rates(self, x, u):
+            r = super().rates(x, u)
+            dry = friction * torch.tanh(x[..., 1] / PENDULUM_FRICTION_WIDTH)
+            return torch.stack([r[..., 0], r[..., 1] - dry], dim=-1)
+
+    return WithFriction()
+
+
+def grey_box(
+    records: list[int], quick: bool, hidden: int = 16, friction: float = 0.0
+) -> list[dict[str, Any]]:
+    """The pendulum family's ``records`` (3 % outliers; with the pivot's dry ``friction``, which the
+    physical model lacks): the physical RK4 model's default fit, and a ``GreyBoxTransition`` of it
+    (the same model at its start parameters plus an ``hidden``-unit correction that starts at zero)
+    fitted with the defaults (inside ``fit``: the physical part's first stage, the neural first
+    stage of both, the noise EM) and after ``distilled_start`` (the physical part at the
+    reference's fit, EM refines both); the true model's free run (the floor).  Validation RMSE
+    (ratio to the physical fit), CPU s, EM iterations, the neural first stage's iterations,
+    outliers and regular samples flagged."""
+    from torch_nssm.datasets import PENDULUM_TRUE
     from torch_nssm.neural import GreyBoxTransition
 
     rows: list[dict[str, Any]] = []
     print(f"{'record':>6} {'fit':>18} {'validation':>10} {'ratio':>6} {'CPU s':>7} {'EM it.':>6} "
           f"{'stage it.':>9} {'flagged':>8} {'regular':>7}", flush=True)
     em_options = dict(n_iter=3, n_particles=50, random_state=0) if quick else dict(random_state=0)
-    for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(["pendulum"], records, quick):
+    for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(
+        ["pendulum"], records, quick, friction=friction
+    ):
         mask = np.asarray(d.outlier_mask)
+        v = d.validation
+        f_true = _pendulum_with_friction(friction) if friction else type(f_phys)(**PENDULUM_TRUE)
+        floor = rmse(simulate(f_true, g, v.u, fitted_first_state(f_true, g, v.u, v.y, val_guess)), v.y_true)
         rmse_physical = None
         for fit in ("physical", "grey box, defaults", "grey box, distilled"):
             f = copy.deepcopy(f_phys)
@@ -783,15 +814,18 @@ def grey_box(records: list[int], quick: bool, hidden: int = 16) -> list[dict[str
             est, row = _scored_fit(est, d, mask, guess, distil=fit == "grey box, distilled")
             val = row["validation_rmse"]
             rmse_physical = val if rmse_physical is None else rmse_physical
-            stage_it = getattr(est.first_stage_, "iterations", None)
-            row = {"record": record, "fit": fit, "ratio": val / rmse_physical, **row}
+            stage = est.first_stage_
+            stage_it = getattr(stage, "iterations", None) if hasattr(stage, "optimizer") else None
+            row = {"record": record, "friction": friction, "fit": fit, "ratio": val / rmse_physical, **row}
             row["first_stage_iterations"] = stage_it
+            row["true_model_rmse"] = floor
             rows.append(row)
             print(
                 f"{record:>6} {fit:>18} {val:10.4g} {row['ratio']:6.2f} {row['cpu_s']:7.1f} "
                 f"{row['n_iter']:>6} {str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}",
                 flush=True,
             )
+        print(f"{record:>6} {'true model':>18} {floor:10.4g} {floor / rmse_physical:6.2f}", flush=True)
     return rows
 
 
@@ -836,6 +870,7 @@ def main(argv=None) -> None:
     parser.add_argument("--weight-decay", default="0,1e-3", help="first-stage-spread: weight decays")
     parser.add_argument("--validation-fraction", type=float, default=0.15, help="first-stage-spread")
     parser.add_argument("--starts", default=",".join(STARTS), help="first-stage-starts: the network's starts")
+    parser.add_argument("--friction", type=float, default=0.0, help="grey-box: the pendulum's dry friction")
     parser.add_argument(
         "--record-length", type=int, default=None, help="first-stage-starts: suite plants' training samples"
     )
@@ -879,7 +914,7 @@ def main(argv=None) -> None:
             args.record_length,
         )
     elif args.study == "grey-box":
-        out = grey_box([int(a) for a in args.records.split(",")], args.quick)
+        out = grey_box([int(a) for a in args.records.split(",")], args.quick, friction=args.friction)
     elif args.study == "distilled-start":
         records = [int(a) for a in args.records.split(",")]
         out = distilled_start_fits(args.plants.split(","), records, args.quick)

@@ -186,10 +186,11 @@ def replace_modules(model, f):
 def test_a_grey_box_fits_its_physical_part_first_with_the_network_held():
     """``physical_part_first``: a GreyBoxTransition's physical parameters (30-50 % off) are fitted by
     the physical first stage while the correction's layers are held (unchanged, their
-    ``requires_grad`` restored); a network without physical parameters gets ``None``."""
+    ``requires_grad`` restored); a network without physical parameters, or a grey box observed
+    through a network, gets ``None``."""
     from torch_nssm.datasets import PENDULUM_START, PENDULUM_TRUE, make_pendulum, pendulum_model
     from torch_nssm.estimation.start import physical_part_first
-    from torch_nssm.neural import GreyBoxTransition, MLPTransition
+    from torch_nssm.neural import GreyBoxTransition, MLPObservation, MLPTransition
 
     d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
     f_phys, g = pendulum_model(PENDULUM_START)
@@ -209,3 +210,8 @@ def test_a_grey_box_fits_its_physical_part_first_with_the_network_held():
         data, device
     )
     assert physical_part_first(net_model, data) is None
+    neural_g = RobustNSSMEstimator(
+        GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,)), MLPObservation(2, 1, 1),
+        x0_mean=[0.0, 0.0],
+    )._initial_model(data, device)
+    assert physical_part_first(neural_g, data) is None  # no physical g to fit f's physics through

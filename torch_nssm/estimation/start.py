@@ -398,15 +398,18 @@ def physical_part_first(model: StateSpaceModel, data: SequenceBatch) -> FirstSta
     """A grey box's physical parameters by the physical first stage before the network trains.
 
     Runs where ``f`` has free parameters outside its network layers (a
-    :class:`~torch_nssm.neural.GreyBoxTransition`'s physical part): the network layers' parameters
-    of ``f`` and ``g`` are held (a correction that starts at zero leaves the physical model) while
-    :func:`~torch_nssm.estimation.first_stage.simulation_error_fit` fits the others in place;
-    ``None`` elsewhere (a network alone).  The neural first stage then trains every parameter
-    from there.  From the physical part's start (30-50 % off) instead, the neural first stage lets
-    the network carry the physics: on the pendulum with a dry friction its physical model lacks,
-    0.026 rad in 1,397 CPU s with ``g/l`` left at 11.9 (the truth 19.6), against 0.017 rad in 265 s
-    with ``g/l`` at 19.5 this way (benchmarks/README.md, "Grey boxes on the pendulum")."""
-    layers = [sub for m in (model.f, model.g) for sub in m.modules() if isinstance(sub, NETWORK_LAYERS)]
+    :class:`~torch_nssm.neural.GreyBoxTransition`'s physical part) and ``g`` holds no network: the
+    network layers' parameters of ``f`` are held (a correction that starts at zero leaves the
+    physical model) while :func:`~torch_nssm.estimation.first_stage.simulation_error_fit` fits the
+    others (``g``'s too) in place; ``None`` elsewhere (a network alone, a neural ``g``).  The
+    neural first stage then trains every parameter from there.  From the physical part's start
+    (30-50 % off) instead, the neural first stage lets the network carry the physics: on the
+    pendulum with a dry friction its physical model lacks, 0.026 rad in 1,397 CPU s with ``g/l``
+    left at 11.9 (the truth 19.6), against 0.017 rad in 265 s with ``g/l`` at 19.5 this way
+    (benchmarks/README.md, "Grey boxes on the pendulum")."""
+    if any(isinstance(sub, NETWORK_LAYERS) for sub in model.g.modules()):
+        return None  # an untrained network as g: no physical model to fit f through
+    layers = [sub for sub in model.f.modules() if isinstance(sub, NETWORK_LAYERS)]
     held = [p for sub in layers for p in sub.parameters() if p.requires_grad]
     in_layers = {id(p) for sub in layers for p in sub.parameters()}
     if not any(p.requires_grad and id(p) not in in_layers for p in model.f.parameters()):
