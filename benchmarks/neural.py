@@ -44,7 +44,8 @@ wall seconds beside them, because the machines these ran on were shared):
 * ``grey-box`` -- a ``GreyBoxTransition`` of the pendulum's RK4 model (plus a 16-unit correction)
   fitted with the defaults and after ``distilled_start``, beside the physical model's default fit
   and the true model's free run (``--records``; ``--friction``: a dry friction in the pivot that
-  the physical model lacks).
+  the physical model lacks; ``--plants oscillator``: the suite's oscillator, the user's physical
+  model a linear spring).
 
 Usage::
 
@@ -56,6 +57,7 @@ Usage::
     python benchmarks/neural.py first-stage-starts --plants oscillator,bouc_wen
     python benchmarks/neural.py distilled-start --plants oscillator,bouc_wen,pendulum --records 0,1,2
     python benchmarks/neural.py grey-box --records 0 --friction 1             # about 10 min per record
+    python benchmarks/neural.py grey-box --plants oscillator                  # about 20 min
     python benchmarks/neural.py pendulum --quick                           # a smoke run
 """
 
@@ -779,36 +781,66 @@ def _pendulum_with_friction(friction: float) -> torch.nn.Module:
     return WithFriction()
 
 
+def _grey_box_records(plant: str, records: list[int], quick: bool, friction: float):
+    """The grey-box study's records: ``(record, data, x0_guess, validation guess, physical f at its
+    start, g, the true f, whether to normalise the correction)``.  ``pendulum``: the family's
+    ``records`` with the pivot's dry ``friction``, which the physical model lacks; ``oscillator``:
+    the suite's record of seed 0 with 3 % outliers, the user's physical model a linear spring (the
+    cubic stiffness ``alpha`` held at zero)."""
+    if plant == "pendulum":
+        from torch_nssm.datasets import PENDULUM_TRUE
+
+        for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(
+            ["pendulum"], records, quick, friction=friction
+        ):
+            f_true = _pendulum_with_friction(friction) if friction else type(f_phys)(**PENDULUM_TRUE)
+            yield record, d, x0_guess, val_guess, f_phys, g, f_true, False
+        return
+    from suite.plants import PLANTS
+
+    spec = PLANTS[plant]
+    n = spec.quick_train if quick else spec.n_train
+    n_val = spec.quick_validation if quick else spec.n_validation
+    d = spec.make(n, outlier_fraction=0.03, random_state=0, n_validation=n_val)
+    f_phys, g = spec.model({**spec.start, "alpha": 0.0})
+    f_phys.alpha.requires_grad_(False)
+    f_true, _ = spec.model(spec.true)
+    yield 0, d, d.x0_guess, d.validation.x0, f_phys, g, f_true, True
+
+
 def grey_box(
-    records: list[int], quick: bool, hidden: int = 16, friction: float = 0.0
+    records: list[int], quick: bool, hidden: int = 16, friction: float = 0.0, plant: str = "pendulum"
 ) -> list[dict[str, Any]]:
-    """The pendulum family's ``records`` (3 % outliers; with the pivot's dry ``friction``, which the
-    physical model lacks): the physical RK4 model's default fit, and a ``GreyBoxTransition`` of it
-    (the same model at its start parameters plus an ``hidden``-unit correction that starts at zero)
+    """A physical model with a gap and a ``GreyBoxTransition`` of it (the same model at its start
+    parameters plus an ``hidden``-unit correction that starts at zero; ``_grey_box_records``: the
+    pendulum with a dry ``friction``, or the oscillator whose user's model has a linear spring)
     fitted with the defaults (inside ``fit``: the physical part's first stage, the neural first
     stage of both, the noise EM) and after ``distilled_start`` (the physical part at the
-    reference's fit, EM refines both); the true model's free run (the floor).  Validation RMSE
+    reference's fit, EM refines both), beside the physical model's default fit and the true
+    model's free run (the floor).  The oscillator's correction is normalised by the record's state
+    and step scales (``fit_normalisation``), as the suite study's networks are.  Validation RMSE
     (ratio to the physical fit), CPU s, EM iterations, the neural first stage's iterations,
-    outliers and regular samples flagged."""
-    from torch_nssm.datasets import PENDULUM_TRUE
+    outliers and regular samples flagged, the fitted physical parameters."""
     from torch_nssm.neural import GreyBoxTransition
 
     rows: list[dict[str, Any]] = []
     print(f"{'record':>6} {'fit':>18} {'validation':>10} {'ratio':>6} {'CPU s':>7} {'EM it.':>6} "
           f"{'stage it.':>9} {'flagged':>8} {'regular':>7}", flush=True)
     em_options = dict(n_iter=3, n_particles=50, random_state=0) if quick else dict(random_state=0)
-    for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(
-        ["pendulum"], records, quick, friction=friction
+    for record, d, x0_guess, val_guess, f_phys, g, f_true, normalise in _grey_box_records(
+        plant, records, quick, friction
     ):
         mask = np.asarray(d.outlier_mask)
         v = d.validation
-        f_true = _pendulum_with_friction(friction) if friction else type(f_phys)(**PENDULUM_TRUE)
         floor = rmse(simulate(f_true, g, v.u, fitted_first_state(f_true, g, v.u, v.y, val_guess)), v.y_true)
         rmse_physical = None
         for fit in ("physical", "grey box, defaults", "grey box, distilled"):
             f = copy.deepcopy(f_phys)
             if fit != "physical":
-                f = GreyBoxTransition(f, 2, 1, hidden=(hidden,), random_state=0)
+                f = GreyBoxTransition(f, d.x.shape[1], 1, hidden=(hidden,), random_state=0)
+                if normalise:
+                    x, u = np.asarray(d.x), np.asarray(d.u).reshape(len(d.y), -1)
+                    f.fit_normalisation(x[:-1], u[:-1], x_next=x[1:])
             est = RobustNSSMEstimator(f, g, x0_mean=x0_guess, **em_options)
             guess = val_guess if fit == "physical" else None
             est, row = _scored_fit(est, d, mask, guess, distil=fit == "grey box, distilled")
@@ -816,13 +848,17 @@ def grey_box(
             rmse_physical = val if rmse_physical is None else rmse_physical
             stage = est.first_stage_
             stage_it = getattr(stage, "iterations", None) if hasattr(stage, "optimizer") else None
-            row = {"record": record, "friction": friction, "fit": fit, "ratio": val / rmse_physical, **row}
+            physical = est.f_.physical if fit != "physical" else est.f_
+            row = {"plant": plant, "record": record, "friction": friction, "fit": fit,
+                   "ratio": val / rmse_physical, **row}
             row["first_stage_iterations"] = stage_it
             row["true_model_rmse"] = floor
+            row["physical_parameters"] = {k: float(p.detach()) for k, p in physical.named_parameters()}
             rows.append(row)
             print(
                 f"{record:>6} {fit:>18} {val:10.4g} {row['ratio']:6.2f} {row['cpu_s']:7.1f} "
-                f"{row['n_iter']:>6} {str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}",
+                f"{row['n_iter']:>6} {str(stage_it or '-'):>9} {row['flagged']:>8} {row['false_alarms']:>7}  "
+                + " ".join(f"{k}={p:.4g}" for k, p in row["physical_parameters"].items()),
                 flush=True,
             )
         print(f"{record:>6} {'true model':>18} {floor:10.4g} {floor / rmse_physical:6.2f}", flush=True)
@@ -914,7 +950,9 @@ def main(argv=None) -> None:
             args.record_length,
         )
     elif args.study == "grey-box":
-        out = grey_box([int(a) for a in args.records.split(",")], args.quick, friction=args.friction)
+        plant = args.plants if args.plants in ("pendulum", "oscillator") else "pendulum"
+        records = [int(a) for a in args.records.split(",")]
+        out = grey_box(records, args.quick, friction=args.friction, plant=plant)
     elif args.study == "distilled-start":
         records = [int(a) for a in args.records.split(",")]
         out = distilled_start_fits(args.plants.split(","), records, args.quick)

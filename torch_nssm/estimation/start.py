@@ -406,7 +406,7 @@ def physical_part_first(model: StateSpaceModel, data: SequenceBatch) -> FirstSta
     (30-50 % off) instead, the neural first stage lets the network carry the physics: on the
     pendulum with a dry friction its physical model lacks, 0.026 rad in 1,397 CPU s with ``g/l``
     left at 11.9 (the truth 19.6), against 0.017 rad in 265 s with ``g/l`` at 19.5 this way
-    (benchmarks/README.md, "Grey boxes on the pendulum")."""
+    (benchmarks/README.md, "Grey boxes where the physics has a gap")."""
     if any(isinstance(sub, NETWORK_LAYERS) for sub in model.g.modules()):
         return None  # an untrained network as g: no physical model to fit f through
     layers = [sub for sub in model.f.modules() if isinstance(sub, NETWORK_LAYERS)]
