@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import warnings
 
 import numpy as np
@@ -215,3 +216,45 @@ def test_a_grey_box_fits_its_physical_part_first_with_the_network_held():
         x0_mean=[0.0, 0.0],
     )._initial_model(data, device)
     assert physical_part_first(neural_g, data) is None  # no physical g to fit f's physics through
+
+
+@pytest.mark.filterwarnings("ignore:only 300 observed samples")
+def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit(monkeypatch):
+    """Where the neural first stage does not improve on the physical part's fit (forced here: its
+    modules restored, ``accepted=False``), ``simulation_start`` says so and starts EM at the
+    physical fit, and ``fit`` keeps the physical stage's report as ``first_stage_``."""
+    import dataclasses
+
+    import torch_nssm.estimation.start as start_module
+    from torch_nssm import simulation_start
+    from torch_nssm.datasets import PENDULUM_START, PENDULUM_TRUE, make_pendulum, pendulum_model
+    from torch_nssm.estimation.first_stage import FirstStageReport
+    from torch_nssm.neural import GreyBoxTransition
+
+    real = start_module.neural_first_stage
+
+    def unimproved(model, data, options=None, *, generator=None):
+        kept = [copy.deepcopy(m.state_dict()) for m in (model.f, model.g)]
+        report = real(model, data, dataclasses.replace(options, max_iter=25), generator=generator)
+        for m, state in zip((model.f, model.g), kept):
+            m.load_state_dict(state)
+        report.accepted = False
+        return report
+
+    monkeypatch.setattr(start_module, "neural_first_stage", unimproved)
+    d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
+
+    def estimator():
+        grey = GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,), random_state=0)
+        return RobustNSSMEstimator(grey, pendulum_model()[1], x0_mean=[0.0, 0.0], n_iter=2, n_particles=50,
+                                   random_state=0)
+
+    with pytest.warns(RuntimeWarning, match="physical part's fit"):
+        started = simulation_start(estimator(), d.u, d.y)
+    assert started.f.physical.g_over_l.item() == pytest.approx(PENDULUM_TRUE["g_over_l"], rel=0.02)
+    assert started.fit_Rw is False and started.first_stage is None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fitted = estimator().fit(d.u, d.y)
+    assert isinstance(fitted.first_stage_, FirstStageReport) and fitted.first_stage_.accepted
+    assert fitted.f_.physical.g_over_l.item() == pytest.approx(PENDULUM_TRUE["g_over_l"], rel=0.02)
