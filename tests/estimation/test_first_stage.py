@@ -235,7 +235,7 @@ def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit
 
     def unimproved(model, data, options=None, *, generator=None):
         kept = [copy.deepcopy(m.state_dict()) for m in (model.f, model.g)]
-        report = real(model, data, dataclasses.replace(options, max_iter=25), generator=generator)
+        report = real(model, data, dataclasses.replace(options, max_iter=5), generator=generator)
         for m, state in zip((model.f, model.g), kept):
             m.load_state_dict(state)
         report.accepted = False
