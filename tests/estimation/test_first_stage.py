@@ -258,3 +258,40 @@ def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit
         fitted = estimator().fit(d.u, d.y)
     assert isinstance(fitted.first_stage_, FirstStageReport) and fitted.first_stage_.accepted
     assert fitted.f_.physical.g_over_l.item() == pytest.approx(PENDULUM_TRUE["g_over_l"], rel=0.02)
+
+
+@pytest.mark.filterwarnings("ignore:only 300 observed samples")
+@pytest.mark.filterwarnings("ignore:the model's noise-free simulation explains")
+def test_ctrl_c_in_a_grey_box_physical_stage_ends_the_first_stage(monkeypatch):
+    """Ctrl-C during a grey box's physical stage (its report ``interrupted``): the network is not
+    trained after it, ``fit`` ends with the first stage's message and ``simulation_start`` raises
+    ``KeyboardInterrupt``."""
+    import torch_nssm.estimation.start as start_module
+    from torch_nssm import simulation_start
+    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
+    from torch_nssm.neural import GreyBoxTransition
+
+    real = start_module.simulation_error_fit
+
+    def interrupted(model, data, **kw):
+        report = real(model, data, horizons=[50], max_iter=3)
+        report.interrupted = True
+        return report
+
+    def untouched(*args, **kw):
+        raise AssertionError("the network trained after Ctrl-C")
+
+    monkeypatch.setattr(start_module, "simulation_error_fit", interrupted)
+    monkeypatch.setattr(start_module, "neural_first_stage", untouched)
+    d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
+
+    def estimator():
+        grey = GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,), random_state=0)
+        return RobustNSSMEstimator(grey, pendulum_model()[1], x0_mean=[0.0, 0.0], n_iter=2, n_particles=50,
+                                   random_state=0)
+
+    with pytest.warns(RuntimeWarning, match="interrupted"):
+        fitted = estimator().fit(d.u, d.y)
+    assert fitted.first_stage_.interrupted
+    with pytest.raises(KeyboardInterrupt):
+        simulation_start(estimator(), d.u, d.y)

@@ -627,6 +627,8 @@ def simulation_start(
     model = estimator._initial_model(data, device)
     generator = torch.Generator().manual_seed(stage_seed(estimator.random_state))
     report, first_states = network_first_stage(model, data, options, generator)
+    if report.interrupted:  # Ctrl-C in a grey box's physical stage: no start to return
+        raise KeyboardInterrupt
     params: dict[str, Any] = dict(f=model.f, g=model.g, first_stage=None)
     if first_states is not None:
         Rw, Rv = start_noise_levels(model, data, first_states)

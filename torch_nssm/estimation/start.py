@@ -376,13 +376,16 @@ def first_stage_start(
 
 def network_first_stage(
     model: StateSpaceModel, data: SequenceBatch, options: NeuralFirstStageOptions, generator: torch.Generator
-) -> tuple[NeuralFirstStageReport, torch.Tensor | None]:
+) -> tuple[FirstStageReport | NeuralFirstStageReport, torch.Tensor | None]:
     """The first stage of a model holding a network, in place: a grey box's physical parameters
     first (:func:`physical_part_first`), then every parameter by the neural first stage from there.
     Returns the neural stage's report (``physical_stage``: the physical one) and each record's
     fitted first state: the neural stage's, the physical stage's where only that improved the free
-    run (the modules at its fit), ``None`` where neither did (the modules as given)."""
+    run (the modules at its fit), ``None`` where neither did (the modules as given).  A physical
+    stage stopped by Ctrl-C is returned as it is (``interrupted``), the network untrained."""
     physical = physical_part_first(model, data)
+    if physical is not None and physical.interrupted:
+        return physical, physical.record_states if physical.accepted else None
     if physical is not None and physical.accepted:
         model = replace(model, x0_mean=physical.record_states.mean(0))
     report = neural_first_stage(model, data, options, generator=generator)
