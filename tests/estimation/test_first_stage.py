@@ -218,6 +218,16 @@ def test_a_grey_box_fits_its_physical_part_first_with_the_network_held():
     assert physical_part_first(neural_g, data) is None  # no physical g to fit f's physics through
 
 
+def _grey_pendulum() -> RobustNSSMEstimator:
+    """A grey box of the pendulum at its start parameters (an 8-unit correction), 2 EM iterations."""
+    from torch_nssm.datasets import PENDULUM_START, pendulum_model
+    from torch_nssm.neural import GreyBoxTransition
+
+    grey = GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,), random_state=0)
+    return RobustNSSMEstimator(grey, pendulum_model()[1], x0_mean=[0.0, 0.0], n_iter=2, n_particles=50,
+                               random_state=0)
+
+
 @pytest.mark.filterwarnings("ignore:only 300 observed samples")
 def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit(monkeypatch):
     """Where the neural first stage does not improve on the physical part's fit (forced here: its
@@ -227,9 +237,8 @@ def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit
 
     import torch_nssm.estimation.start as start_module
     from torch_nssm import simulation_start
-    from torch_nssm.datasets import PENDULUM_START, PENDULUM_TRUE, make_pendulum, pendulum_model
+    from torch_nssm.datasets import PENDULUM_TRUE, make_pendulum
     from torch_nssm.estimation.first_stage import FirstStageReport
-    from torch_nssm.neural import GreyBoxTransition
 
     real = start_module.neural_first_stage
 
@@ -244,18 +253,13 @@ def test_a_grey_box_whose_network_does_not_improve_starts_em_at_its_physical_fit
     monkeypatch.setattr(start_module, "neural_first_stage", unimproved)
     d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
 
-    def estimator():
-        grey = GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,), random_state=0)
-        return RobustNSSMEstimator(grey, pendulum_model()[1], x0_mean=[0.0, 0.0], n_iter=2, n_particles=50,
-                                   random_state=0)
-
     with pytest.warns(RuntimeWarning, match="physical part's fit"):
-        started = simulation_start(estimator(), d.u, d.y)
+        started = simulation_start(_grey_pendulum(), d.u, d.y)
     assert started.f.physical.g_over_l.item() == pytest.approx(PENDULUM_TRUE["g_over_l"], rel=0.02)
     assert started.fit_Rw is False and started.first_stage is None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fitted = estimator().fit(d.u, d.y)
+        fitted = _grey_pendulum().fit(d.u, d.y)
     assert isinstance(fitted.first_stage_, FirstStageReport) and fitted.first_stage_.accepted
     assert fitted.f_.physical.g_over_l.item() == pytest.approx(PENDULUM_TRUE["g_over_l"], rel=0.02)
 
@@ -268,8 +272,7 @@ def test_ctrl_c_in_a_grey_box_physical_stage_ends_the_first_stage(monkeypatch):
     ``KeyboardInterrupt``."""
     import torch_nssm.estimation.start as start_module
     from torch_nssm import simulation_start
-    from torch_nssm.datasets import PENDULUM_START, make_pendulum, pendulum_model
-    from torch_nssm.neural import GreyBoxTransition
+    from torch_nssm.datasets import make_pendulum
 
     real = start_module.simulation_error_fit
 
@@ -285,13 +288,8 @@ def test_ctrl_c_in_a_grey_box_physical_stage_ends_the_first_stage(monkeypatch):
     monkeypatch.setattr(start_module, "neural_first_stage", untouched)
     d = make_pendulum(300, random_state=0, n_validation=10, Rw=0.0)
 
-    def estimator():
-        grey = GreyBoxTransition(pendulum_model(PENDULUM_START)[0], 2, 1, hidden=(8,), random_state=0)
-        return RobustNSSMEstimator(grey, pendulum_model()[1], x0_mean=[0.0, 0.0], n_iter=2, n_particles=50,
-                                   random_state=0)
-
     with pytest.warns(RuntimeWarning, match="interrupted"):
-        fitted = estimator().fit(d.u, d.y)
+        fitted = _grey_pendulum().fit(d.u, d.y)
     assert fitted.first_stage_.interrupted
     with pytest.raises(KeyboardInterrupt):
-        simulation_start(estimator(), d.u, d.y)
+        simulation_start(_grey_pendulum(), d.u, d.y)
