@@ -767,20 +767,6 @@ def distilled_start_fits(plants: list[str], records: list[int], quick: bool) -> 
     return rows
 
 
-def _pendulum_with_friction(friction: float) -> torch.nn.Module:
-    """The pendulum's RK4 transition at the truth with the pivot's dry friction of
-    ``make_pendulum(friction=...)``: the true model of a record with friction."""
-    from torch_nssm.datasets.pendulum import PENDULUM_FRICTION_WIDTH, PendulumTransition
-
-    class WithFriction(PendulumTransition):
-        def rates(self, x, u):
-            r = super().rates(x, u)
-            dry = friction * torch.tanh(x[..., 1] / PENDULUM_FRICTION_WIDTH)
-            return torch.stack([r[..., 0], r[..., 1] - dry], dim=-1)
-
-    return WithFriction()
-
-
 def _grey_box_records(plant: str, records: list[int], quick: bool, friction: float):
     """The grey-box study's records: ``(record, data, x0_guess, validation guess, physical f at its
     start, g, the true f, whether to normalise the correction)``.  ``pendulum``: the family's
@@ -793,7 +779,7 @@ def _grey_box_records(plant: str, records: list[int], quick: bool, friction: flo
         for _, record, d, x0_guess, val_guess, f_phys, g, _ in _first_stage_records(
             ["pendulum"], records, quick, friction=friction
         ):
-            f_true = _pendulum_with_friction(friction) if friction else type(f_phys)(**PENDULUM_TRUE)
+            f_true = type(f_phys)(**PENDULUM_TRUE, friction=friction)
             yield record, d, x0_guess, val_guess, f_phys, g, f_true, False
         return
     from suite.plants import PLANTS

@@ -158,22 +158,16 @@ def test_oe_baseline_recovers_the_pendulum():
 
 def test_pendulum_friction_is_the_gap_in_the_users_model():
     """``make_pendulum(friction=...)`` simulates RK4 of the pendulum plus the pivot's dry friction:
-    one step of the user's ``f`` at the truth misses it, the same step with the friction added
+    one step of the user's ``f`` at the truth misses it, ``PendulumTransition(friction=...)``
     reproduces the states; ``friction=0`` is the plain record."""
-    from torch_nssm.datasets.pendulum import PENDULUM_FRICTION_WIDTH, PendulumTransition
-
-    class WithFriction(PendulumTransition):
-        def rates(self, x, u):
-            r = super().rates(x, u)
-            dry = 1.0 * torch.tanh(x[..., 1] / PENDULUM_FRICTION_WIDTH)
-            return torch.stack([r[..., 0], r[..., 1] - dry], dim=-1)
+    from torch_nssm.datasets.pendulum import PendulumTransition
 
     data = make_pendulum(300, random_state=0, n_validation=50, Rw=0.0, friction=1.0)
     x, u = torch.as_tensor(data.x), torch.as_tensor(data.u)
     f, _ = pendulum_model()
     with torch.no_grad():
         plain = (f(x[:-1], u[:-1]) - x[1:]).abs().max().item()
-        exact = (WithFriction()(x[:-1], u[:-1]) - x[1:]).abs().max().item()
+        exact = (PendulumTransition(friction=1.0)(x[:-1], u[:-1]) - x[1:]).abs().max().item()
     assert exact < 1e-12 < 1e-3 < plain
     plain_record = make_pendulum(50, random_state=1)
     np.testing.assert_array_equal(make_pendulum(50, random_state=1, friction=0.0).y, plain_record.y)

@@ -76,6 +76,9 @@ class PendulumTransition(RK4Transition):
         Initial values (default: the truth, :data:`PENDULUM_TRUE`).
     dt : float
         Step, s.
+    friction : float, default=0.0
+        The pivot's dry friction of ``make_pendulum(friction=...)`` (fixed, not a parameter): the
+        true model of such a record, which the user's model (``friction=0``) lacks.
     dtype : torch.dtype
     device : torch.device or str, optional
     """
@@ -90,17 +93,21 @@ class PendulumTransition(RK4Transition):
         gain: float = PENDULUM_TRUE["gain"],
         *,
         dt: float = PENDULUM_DT,
+        friction: float = 0.0,
         dtype: torch.dtype = torch.float64,
         device: torch.device | str | None = None,
     ) -> None:
         super().__init__()
         scalar_parameters(self, {"g_over_l": g_over_l, "damping": damping, "gain": gain}, dtype, device)
         self.dt = float(dt)
+        self.friction = float(friction)
 
     def rates(self, x: Tensor, u: Tensor) -> Tensor:
         """``[theta', theta'']`` at ``x`` ``(..., 2)`` and ``u`` ``(..., 1)``."""
         theta, omega = x[..., 0], x[..., 1]
         acc = -self.g_over_l * torch.sin(theta) - self.damping * omega + self.gain * u[..., 0]
+        if self.friction:
+            acc = acc - self.friction * torch.tanh(omega / PENDULUM_FRICTION_WIDTH)
         return torch.stack([omega, acc], dim=-1)
 
 
